@@ -1,0 +1,206 @@
+"""`rasterize()`: one entry point with gsplat's calling convention, on CUDA (gsplat) or CPU (pure torch).
+
+Splatfacto and the registration call this instead of `gsplat.rasterization`; with CUDA tensors and an
+importable gsplat it *is* `gsplat.rasterization` (non-packed, so `info` has the [C, N] layout that
+`gsplat.strategy.DefaultStrategy` expects). Elsewhere the CPU backend projects with
+`projection.project_gaussians` and composites with `cpu_rasterizer.composite_camera`, and returns an
+`info` dict with the same keys DefaultStrategy reads (`means2d` with retained grad, `radii`, `width`,
+`height`, `n_cameras`, `gaussian_ids` None, ...).
+
+Frames: `viewmats` are world-to-camera in the OpenCV convention (x right, y down, z forward), `Ks` pinhole
+intrinsics in pixels, pixel (i, j) has its centre at (j + 0.5, i + 0.5) -- all as in gsplat.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+import torch
+from torch import Tensor
+
+from sg_nerfstudio.render.cpu_rasterizer import composite_camera
+from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians
+from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
+
+Backend = Literal["auto", "gsplat", "torch"]
+RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+
+
+def gsplat_available() -> bool:
+    """True when gsplat imports and CUDA is usable (its rasterizer has no CPU kernels)."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import gsplat  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_backend(backend: Backend, device: torch.device) -> Literal["gsplat", "torch"]:
+    """Pick the backend: 'auto' means gsplat for CUDA tensors when gsplat imports, torch otherwise."""
+    if backend == "torch":
+        return "torch"
+    if backend == "gsplat":
+        if device.type != "cuda" or not gsplat_available():
+            raise RuntimeError(
+                "backend='gsplat' needs CUDA tensors and an importable gsplat with CUDA; "
+                f"got tensors on {device} (CUDA available: {torch.cuda.is_available()}). Use backend='torch' or 'auto'."
+            )
+        return "gsplat"
+    if backend != "auto":
+        raise ValueError(f"backend must be 'auto', 'gsplat' or 'torch', got {backend!r}.")
+    return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: RenderMode = "RGB",
+    rasterize_mode: Literal["classic", "antialiased"] = "classic",
+    absgrad: bool = False,
+    backend: Backend = "auto",
+) -> tuple[Tensor, Tensor, dict]:
+    """Render N Gaussians into C cameras.
+
+    Args:
+        means: [N, 3] world-frame centres.
+        quats: [N, 4] rotations (w, x, y, z), not necessarily normalised.
+        scales: [N, 3] standard deviations (post-activation).
+        opacities: [N] in [0, 1] (post-activation).
+        colors: [N, D] any D (e.g. 3 RGB + 128 features) when `sh_degree` is None, else SH coefficients
+            [N, K, 3] evaluated up to `sh_degree` (then +0.5 and clamped at 0, as gsplat does).
+        viewmats: [C, 4, 4] world-to-camera, OpenCV.
+        Ks: [C, 3, 3] pinhole intrinsics.
+        width, height: image size in pixels.
+        near_plane, far_plane: depth range in world units.
+        eps2d: 2D blur added to projected covariances (pixels^2).
+        backgrounds: [C, D] colour behind the Gaussians, or None for black.
+        render_mode: "RGB" (colours), "D" (accumulated depth), "ED" (expected depth = D / alpha),
+            "RGB+D", "RGB+ED" (depth appended as the last channel).
+        rasterize_mode: "classic" or "antialiased" (opacity compensation of the 2D blur).
+        absgrad: gsplat only (CUDA backward); the CPU backend has no absgrad and rejects it.
+        backend: "auto", "gsplat" or "torch".
+
+    Returns:
+        render [C, H, W, D'], alphas [C, H, W, 1], info dict.
+    """
+    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode)
+    chosen = resolve_backend(backend, means.device)
+    if chosen == "gsplat":
+        from gsplat.rendering import rasterization as gsplat_rasterization
+
+        return gsplat_rasterization(
+            means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+            viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane,
+            far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, packed=False,
+            backgrounds=backgrounds, render_mode=render_mode, absgrad=absgrad,
+            rasterize_mode=rasterize_mode,
+        )
+    if absgrad:
+        raise ValueError("absgrad=True needs gsplat's CUDA backward; the CPU backend provides means2d.grad only.")
+    return _rasterize_torch(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+        eps2d, sh_degree, backgrounds, render_mode, rasterize_mode,
+    )
+
+
+def _rasterize_torch(
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+    eps2d, sh_degree, backgrounds, render_mode, rasterize_mode,
+) -> tuple[Tensor, Tensor, dict]:
+    n_cameras = viewmats.shape[0]
+    covars = covariances_from_quats_scales(quats, scales)
+    proj = project_gaussians(
+        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane,
+        far_plane=far_plane, calc_compensations=rasterize_mode == "antialiased",
+    )
+    per_camera_opacities = opacities[None].expand(n_cameras, -1)
+    if proj.compensations is not None:
+        per_camera_opacities = per_camera_opacities * proj.compensations
+
+    renders, alphas = [], []
+    for cam in range(n_cameras):
+        visible = torch.nonzero(proj.radii[cam] > 0).squeeze(1)
+        cam_colors = _camera_colors(colors, sh_degree, means, viewmats[cam], visible)
+        depths = proj.depths[cam, visible]
+        if render_mode in ("RGB+D", "RGB+ED"):
+            cam_colors = torch.cat([cam_colors, depths[:, None]], dim=-1)
+        elif render_mode in ("D", "ED"):
+            cam_colors = depths[:, None]
+        render, alpha = composite_camera(
+            proj.means2d[cam, visible], proj.conics[cam, visible], proj.cov2d[cam, visible],
+            per_camera_opacities[cam, visible], cam_colors, depths, width, height,
+        )
+        renders.append(render)
+        alphas.append(alpha)
+    render = torch.stack(renders)
+    alpha = torch.stack(alphas)
+
+    if render_mode in ("ED", "RGB+ED"):
+        render = torch.cat([render[..., :-1], render[..., -1:] / alpha.clamp(min=1e-10)], dim=-1)
+    if backgrounds is not None:
+        if render_mode in ("RGB+D", "RGB+ED"):
+            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cameras, 1)], dim=-1)
+        elif render_mode in ("D", "ED"):
+            backgrounds = backgrounds.new_zeros(n_cameras, 1)
+        render = render + (1.0 - alpha) * backgrounds[:, None, None, :]
+
+    info = {
+        "camera_ids": None,
+        "gaussian_ids": None,
+        "radii": proj.radii,
+        "means2d": proj.means2d,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "opacities": per_camera_opacities,
+        "width": width,
+        "height": height,
+        "n_cameras": n_cameras,
+        "backend": "torch",
+    }
+    return render, alpha, info
+
+
+def _camera_colors(colors: Tensor, sh_degree: Optional[int], means: Tensor, viewmat: Tensor, visible: Tensor) -> Tensor:
+    """Per-Gaussian colours [M, D] of the visible Gaussians for one camera."""
+    if sh_degree is None:
+        return colors[visible]
+    rot, trans = viewmat[:3, :3], viewmat[:3, 3]
+    camera_centre = -rot.transpose(0, 1) @ trans
+    dirs = means[visible] - camera_centre
+    return torch.clamp_min(evaluate_sh(sh_degree, dirs, colors[visible]) + 0.5, 0.0)
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode) -> None:
+    n = means.shape[0]
+    if means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}.")
+    for name, tensor, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)), ("opacities", opacities, (n,))):
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"{name} must be {list(shape)} to match means, got {tuple(tensor.shape)}.")
+    expected_dims = 2 if sh_degree is None else 3
+    if colors.dim() != expected_dims or colors.shape[0] != n:
+        layout = "[N, D]" if sh_degree is None else "[N, K, 3] SH coefficients"
+        raise ValueError(f"colors must be {layout} with N={n}, got {tuple(colors.shape)}.")
+    if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4):
+        raise ValueError(f"viewmats must be [C, 4, 4], got {tuple(viewmats.shape)}.")
+    if tuple(Ks.shape) != (viewmats.shape[0], 3, 3):
+        raise ValueError(f"Ks must be [C, 3, 3] with C={viewmats.shape[0]}, got {tuple(Ks.shape)}.")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"width and height must be positive, got {width}x{height}.")
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}.")

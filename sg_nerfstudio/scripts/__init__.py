@@ -1,0 +1,1 @@
+"""Console scripts (thin tyro wrappers around the library)."""

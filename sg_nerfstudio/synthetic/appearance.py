@@ -1,0 +1,120 @@
+"""In-the-wild appearance: lighting of the landmark and per-photo camera/occluder effects.
+
+Reference renders get flat lighting on the smoothed albedo (the pseudo-synthetic look). Each photo of a
+meta-image gets its own sun, sky, exposure, white balance, gamma, sensor noise, blur and, for some
+photos, transient occluders (people, vehicles, trees) drawn over part of the frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+Array = np.ndarray
+
+
+@dataclass
+class PhotoLook:
+    """Random photometric state of one photo (all drawn from `strength` in [0, 1])."""
+
+    sun_direction: Array  # [3] unit vector towards the sun
+    sun_strength: float
+    sky: Array  # [3]
+    exposure: float
+    white_balance: Array  # [3]
+    gamma: float
+    noise_sigma: float
+    blur_sigma: float
+
+
+def flat_lighting(albedo: Array, normals: Array) -> Array:
+    """Pseudo-synthetic shading: near-uniform, a slight darkening of downward-facing surfaces."""
+    return np.clip(albedo * (0.92 + 0.08 * normals[:, 2:3]), 0.0, 1.0)
+
+
+def sun_lighting(albedo: Array, normals: Array, look: PhotoLook) -> Array:
+    """Lambertian sun plus sky ambient; both sides of a surface receive light (thin splats)."""
+    direct = np.clip(normals @ look.sun_direction, 0.0, 1.0)[:, None]
+    ambient = 0.55 + 0.1 * normals[:, 2:3]
+    return np.clip(albedo * (ambient + look.sun_strength * direct), 0.0, 1.5)
+
+
+def random_look(strength: float, rng: np.random.Generator) -> PhotoLook:
+    elevation = np.deg2rad(rng.uniform(15, 70))
+    azimuth = rng.uniform(0, 2 * np.pi)
+    sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    overcast = rng.random() < 0.3
+    sky = np.array([0.55, 0.7, 0.92]) if not overcast else np.array([0.78, 0.8, 0.82])
+    sky = np.clip(sky + rng.normal(0, 0.05 * strength, 3), 0, 1)
+    return PhotoLook(
+        sun_direction=sun,
+        sun_strength=(0.15 if overcast else 0.7) * strength,
+        sky=sky,
+        exposure=float(2.0 ** rng.normal(0.0, 0.5 * strength)),
+        white_balance=np.exp(rng.normal(0.0, 0.12 * strength, 3)),
+        gamma=float(np.exp(rng.normal(0.0, 0.2 * strength))),
+        noise_sigma=0.015 * strength * rng.uniform(0.3, 1.0),
+        blur_sigma=1.0 * strength * rng.uniform(0.0, 1.0),
+    )
+
+
+def apply_camera_effects(image: Array, look: PhotoLook, rng: np.random.Generator) -> Array:
+    """Exposure, white balance, gamma, blur and noise on a linear [H, W, 3] image in [0, 1]."""
+    out = image * look.exposure * look.white_balance[None, None]
+    out = np.clip(out, 0.0, 1.0) ** look.gamma
+    if look.blur_sigma > 0.3:
+        out = cv2.GaussianBlur(out.astype(np.float32), (0, 0), look.blur_sigma)
+    out = out + rng.normal(0.0, look.noise_sigma, out.shape)
+    return np.clip(out, 0.0, 1.0)
+
+
+def draw_occluders(image: Array, coverage: float, rng: np.random.Generator) -> tuple[Array, float]:
+    """Paint people, vehicles and trees over the lower part of the photo until about `coverage` of it is hidden.
+
+    Returns:
+        the image and the fraction of pixels actually covered.
+    """
+    height, width = image.shape[:2]
+    canvas = (image * 255).astype(np.uint8).copy()
+    mask = np.zeros((height, width), np.uint8)
+    scale = min(width, height)
+    for _ in range(40):
+        if mask.mean() / 255.0 >= coverage:
+            break
+        kind = rng.choice(["person", "vehicle", "tree"], p=[0.5, 0.25, 0.25])
+        x = int(rng.uniform(0.05, 0.95) * width)
+        ground = int(rng.uniform(0.75, 1.05) * height)
+        color = tuple(int(c) for c in rng.integers(20, 230, 3))
+        layer = np.zeros_like(mask)
+        if kind == "person":
+            h = int(rng.uniform(0.25, 0.6) * scale)
+            w = max(h // 4, 2)
+            for target in (canvas, layer):
+                value = color if target is canvas else 255
+                cv2.rectangle(target, (x - w // 2, ground - int(0.85 * h)), (x + w // 2, ground), value, -1)
+                cv2.circle(target, (x, ground - int(0.92 * h)), max(w // 2, 1), value if target is layer else (200, 160, 130), -1)
+        elif kind == "vehicle":
+            h = int(rng.uniform(0.15, 0.3) * scale)
+            w = int(h * rng.uniform(1.8, 2.6))
+            for target in (canvas, layer):
+                value = color if target is canvas else 255
+                cv2.rectangle(target, (x - w // 2, ground - h), (x + w // 2, ground - h // 5), value, -1)
+                cv2.rectangle(target, (x - w // 3, ground - int(1.4 * h)), (x + w // 3, ground - h), value, -1)
+                for wheel in (x - w // 3, x + w // 3):
+                    cv2.circle(target, (wheel, ground - h // 5), max(h // 5, 1), 255 if target is layer else (25, 25, 25), -1)
+        else:
+            h = int(rng.uniform(0.4, 0.9) * scale)
+            trunk = max(h // 12, 2)
+            leaf = (int(rng.integers(20, 60)), int(rng.integers(80, 140)), int(rng.integers(20, 60)))
+            blobs = [
+                (x + int(rng.normal(0, h * 0.15)), ground - h // 2 - int(abs(rng.normal(h * 0.2, h * 0.1))), max(int(h * rng.uniform(0.12, 0.22)), 1))
+                for _ in range(6)
+            ]
+            for target in (canvas, layer):
+                cv2.rectangle(target, (x - trunk, ground - h // 2), (x + trunk, ground), (70, 50, 35) if target is canvas else 255, -1)
+                for cx, cy, radius in blobs:
+                    cv2.circle(target, (cx, cy), radius, leaf if target is canvas else 255, -1)
+        mask = np.maximum(mask, layer)
+    return canvas.astype(np.float64) / 255.0, float(mask.mean() / 255.0)

@@ -1,0 +1,406 @@
+"""A procedural landmark (church-like building on a paved square) as 3D Gaussians with exact geometry.
+
+World frame: z up, ground plane z = 0, the main body centred on the origin, its *front* facade facing
+-y. Units are metres before the generator rescales the scene (see `generator.py`).
+
+Every Gaussian is a flat disc lying on a surface: its third local axis is the surface normal, so the
+splats render like a textured surface. Each Gaussian keeps the surface normal and two albedos:
+`albedo_sharp` (crisp patterns and fine stone texture: what a photo sees) and `albedo_smooth` (blurred
+pattern edges, no fine texture: the "pseudo-synthetic" look of Google-Earth-like reference renders).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+Array = np.ndarray
+
+
+@dataclass
+class BuildingConfig:
+    """Shape and detail of the procedural landmark."""
+
+    width: float = 30.0
+    """Extent of the main body along x (front facade width), metres."""
+    depth: float = 20.0
+    """Extent of the main body along y."""
+    height: float = 16.0
+    """Eave height of the main body."""
+    towers: int = 2
+    """Square towers at the front corners: 0, 1 or 2."""
+    tower_height_ratio: float = 1.8
+    """Tower height / body height."""
+    roof: Literal["pitched", "dome", "flat"] = "pitched"
+    """Roof of the main body."""
+    window_rows: int = 3
+    """Rows of windows on the long facades (detail)."""
+    window_cols: int = 6
+    """Columns of windows on the front/rear facades (detail)."""
+    ground_radius: float = 55.0
+    """Radius of the textured ground disc."""
+    ground_density: float = 0.25
+    """Gaussians per square metre on the ground relative to the building surfaces."""
+    n_gaussians: int = 20000
+    """Total number of Gaussians."""
+    palette_seed: int = 0
+    """Seed of the colour palette and pattern jitter."""
+
+
+@dataclass
+class GaussianScene:
+    """Gaussians of the landmark, all [N, ...] numpy float64 arrays in the world frame.
+
+    Attributes:
+        means: [N, 3] centres.
+        quats: [N, 4] (w, x, y, z) rotations whose third axis is the surface normal.
+        scales: [N, 3] standard deviations along the local axes.
+        opacities: [N] in (0, 1].
+        normals: [N, 3] outward unit surface normals.
+        albedo_sharp: [N, 3] photo albedo in [0, 1].
+        albedo_smooth: [N, 3] reference ("pseudo-synthetic") albedo in [0, 1].
+        is_ground: [N] bool, Gaussians of the ground disc.
+    """
+
+    means: Array
+    quats: Array
+    scales: Array
+    opacities: Array
+    normals: Array
+    albedo_sharp: Array
+    albedo_smooth: Array
+    is_ground: Array
+
+    def scaled(self, factor: float) -> "GaussianScene":
+        """The same scene with all lengths multiplied by `factor` (about the world origin)."""
+        return GaussianScene(
+            means=self.means * factor, quats=self.quats, scales=self.scales * factor,
+            opacities=self.opacities, normals=self.normals, albedo_sharp=self.albedo_sharp,
+            albedo_smooth=self.albedo_smooth, is_ground=self.is_ground,
+        )
+
+
+@dataclass
+class SurfaceSamples:
+    points: Array  # [n, 3]
+    normals: Array  # [n, 3]
+    tangents: Array  # [n, 3] first in-plane axis
+    uv: Array  # [n, 2] pattern coordinates in metres
+
+
+Pattern = Callable[[Array, float], Array]  # (uv [n, 2], edge softness in metres) -> rgb [n, 3]
+
+
+@dataclass
+class Surface:
+    """A sampled piece of the landmark: `sample(n, rng)` draws points uniformly over `area`."""
+
+    name: str
+    area: float
+    sample: Callable[[int, np.random.Generator], SurfaceSamples]
+    pattern: Pattern
+    density: float = 1.0
+    is_ground: bool = False
+
+
+def _smoothstep_inside(signed_distance: Array, softness: float) -> Array:
+    """1 inside (negative distance), 0 outside, with a soft edge of width `softness`."""
+    return 1.0 / (1.0 + np.exp(np.clip(signed_distance / max(softness, 1e-3), -50, 50)))
+
+
+def _hash_noise(ij: Array, seed: int) -> Array:
+    """Deterministic per-cell noise in [0, 1) for integer cell coordinates [n, 2]."""
+    h = (ij[:, 0].astype(np.int64) * 73856093) ^ (ij[:, 1].astype(np.int64) * 19349663) ^ (seed * 83492791)
+    return ((h % 1000003) / 1000003.0).astype(np.float64)
+
+
+def _mix(base: Array, color: Array, weight: Array) -> Array:
+    return base * (1 - weight[:, None]) + np.asarray(color)[None] * weight[:, None]
+
+
+@dataclass
+class FacadeStyle:
+    """Layout of one facade; the differences between sides make front and rear distinguishable."""
+
+    wall: Array
+    trim: Array
+    glass: Array
+    rows: int
+    cols: int
+    door: bool = False
+    rose_window: bool = False
+    window_shape: Literal["arched", "tall", "square"] = "arched"
+    floors: list[float] = field(default_factory=list)
+
+
+def facade_pattern(width: float, height: float, style: FacadeStyle, seed: int) -> Pattern:
+    """Pattern of a facade of size width x height; uv = (along the wall, up the wall) in metres."""
+
+    def pattern(uv: Array, softness: float) -> Array:
+        u, v = uv[:, 0], uv[:, 1]
+        blocks = np.stack([np.floor(u / 1.2 + 0.5 * (np.floor(v / 0.6) % 2)), np.floor(v / 0.6)], axis=1)
+        stone = 0.92 + 0.16 * _hash_noise(blocks, seed) if softness < 0.2 else np.ones_like(u)
+        color = style.wall[None] * stone[:, None]
+        for level in style.floors:  # cornices
+            color = _mix(color, style.trim, _smoothstep_inside(np.abs(v - level * height) - 0.35, softness))
+        cell_w, cell_h = width / style.cols, height / max(style.rows + 1, 1)
+        col_idx = np.clip(np.floor(u / cell_w), 0, style.cols - 1)
+        du = u - (col_idx + 0.5) * cell_w
+        pilaster = _smoothstep_inside(np.abs(np.abs(du) - 0.5 * cell_w) - 0.08 * cell_w, softness)
+        color = _mix(color, style.trim * 0.95, pilaster)
+        for row in range(style.rows):
+            vc = (row + 1.0) * cell_h
+            half_w = {"arched": 0.2, "tall": 0.13, "square": 0.25}[style.window_shape] * cell_w
+            half_h = {"arched": 0.28, "tall": 0.38, "square": 0.22}[style.window_shape] * cell_h
+            box = np.maximum(np.abs(du) - half_w, np.abs(v - vc) - half_h)
+            if style.window_shape == "arched":
+                arch = np.hypot(du, v - (vc + half_h)) - half_w
+                box = np.minimum(box, np.where(v > vc + half_h, arch, box))
+            inside = _smoothstep_inside(box, softness)
+            if style.door and row == 0:
+                inside = inside * (np.abs(u - width / 2) > 0.12 * width)
+            color = _mix(color, style.glass, inside)
+        if style.door:
+            du_door, half = u - width / 2, 0.09 * width
+            top = 0.3 * height
+            door = np.maximum(np.abs(du_door) - half, v - top)
+            door = np.minimum(door, np.where(v > top, np.hypot(du_door, v - top) - half, door))
+            color = _mix(color, style.trim, _smoothstep_inside(door - 0.6, softness))
+            color = _mix(color, np.array([0.18, 0.11, 0.07]), _smoothstep_inside(door, softness))
+        if style.rose_window:
+            r = np.hypot(u - width / 2, v - 0.72 * height)
+            radius = 0.11 * width
+            rings = 0.5 + 0.5 * np.cos(r / radius * 4 * np.pi)
+            rose = np.array([0.25, 0.2, 0.45])[None] * (0.6 + 0.4 * rings[:, None])
+            weight = _smoothstep_inside(r - radius, softness)
+            color = color * (1 - weight[:, None]) + rose * weight[:, None]
+            color = _mix(color, style.trim, _smoothstep_inside(np.abs(r - radius) - 0.25, softness))
+        return np.clip(color, 0.0, 1.0)
+
+    return pattern
+
+
+def ground_pattern(seed: int, body_half_extent: Array) -> Pattern:
+    """Paved square with tiles of varying tone, a path to the front door, grass further out."""
+
+    def pattern(uv: Array, softness: float) -> Array:
+        x, y = uv[:, 0], uv[:, 1]
+        tiles = np.stack([np.floor(x / 3.0), np.floor(y / 3.0)], axis=1)
+        tone = 0.85 + 0.3 * _hash_noise(tiles, seed + 1) if softness < 0.2 else np.ones_like(x)
+        paving = np.array([0.62, 0.58, 0.52])[None] * tone[:, None]
+        joints = np.minimum(np.abs(x / 3.0 - np.round(x / 3.0)), np.abs(y / 3.0 - np.round(y / 3.0))) * 3.0
+        paving = _mix(paving, np.array([0.4, 0.38, 0.35]), _smoothstep_inside(joints - 0.12, softness))
+        path = _smoothstep_inside(np.maximum(np.abs(x) - 4.0, y + body_half_extent[1]), softness)
+        paving = _mix(paving, np.array([0.72, 0.66, 0.55]), path * (y < 0))
+        radius = np.hypot(x, y)
+        grass_tone = 0.8 + 0.4 * _hash_noise(np.floor(uv / 1.5), seed + 2) if softness < 0.2 else np.ones_like(x)
+        grass = np.array([0.3, 0.45, 0.2])[None] * grass_tone[:, None]
+        outer = 1.6 * float(np.max(body_half_extent)) + 6.0
+        weight = 1.0 - _smoothstep_inside(radius - outer, max(softness, 0.5))
+        return np.clip(paving * (1 - weight[:, None]) + grass * weight[:, None], 0.0, 1.0)
+
+    return pattern
+
+
+def plain_pattern(color: Array, stripe_period: float, stripe_color: Array, axis: int, seed: int) -> Pattern:
+    """Roof tiles / dome ribs: a base colour with stripes along one pattern axis."""
+
+    def pattern(uv: Array, softness: float) -> Array:
+        phase = np.abs(uv[:, axis] / stripe_period - np.round(uv[:, axis] / stripe_period)) * stripe_period
+        out = _mix(np.repeat(np.asarray(color)[None], len(uv), 0), stripe_color, _smoothstep_inside(phase - 0.2 * stripe_period, softness))
+        if softness < 0.2:
+            out = out * (0.9 + 0.2 * _hash_noise(np.floor(uv / 0.8), seed))[:, None]
+        return np.clip(out, 0.0, 1.0)
+
+    return pattern
+
+
+def _stratified_unit_square(n: int, rng: np.random.Generator) -> Array:
+    """n points in [0,1]^2, jittered on a near-square grid (even coverage, no clumps)."""
+    side = max(int(np.ceil(np.sqrt(n))), 1)
+    cells = rng.permutation(side * side)[:n]
+    return (np.stack([cells % side, cells // side], axis=1) + rng.random((n, 2))) / side
+
+
+def planar_patch(
+    name: str, origin: Array, u_axis: Array, v_axis: Array, size: tuple[float, float], pattern: Pattern,
+    keep: Callable[[Array], Array] | None = None, density: float = 1.0,
+) -> Surface:
+    """Rectangle origin + a*size[0]*u + b*size[1]*v; `keep(uv)` optionally trims it (gables, pyramids)."""
+    origin, u_axis, v_axis = (np.asarray(a, dtype=np.float64) for a in (origin, u_axis, v_axis))
+    normal = np.cross(u_axis, v_axis)
+    normal /= np.linalg.norm(normal)
+    fraction = 1.0
+    if keep is not None:  # estimate the kept fraction once for the area
+        probe = _stratified_unit_square(4096, np.random.default_rng(0)) * np.asarray(size)
+        fraction = float(np.mean(keep(probe)))
+
+    def sample(n: int, rng: np.random.Generator) -> SurfaceSamples:
+        uv = np.zeros((0, 2))
+        while len(uv) < n:
+            cand = _stratified_unit_square(int(n / max(fraction, 0.05)) + 8, rng) * np.asarray(size)
+            if keep is not None:
+                cand = cand[keep(cand)]
+            uv = np.concatenate([uv, cand])
+        uv = uv[rng.permutation(len(uv))[:n]]
+        points = origin[None] + uv[:, :1] * u_axis[None] + uv[:, 1:] * v_axis[None]
+        return SurfaceSamples(points, np.repeat(normal[None], n, 0), np.repeat(u_axis[None], n, 0), uv)
+
+    return Surface(name, size[0] * size[1] * fraction, sample, pattern, density)
+
+
+def ground_disc(radius: float, pattern: Pattern, density: float) -> Surface:
+    def sample(n: int, rng: np.random.Generator) -> SurfaceSamples:
+        a = _stratified_unit_square(n, rng)
+        r, theta = radius * np.sqrt(a[:, 0]), 2 * np.pi * a[:, 1]
+        points = np.stack([r * np.cos(theta), r * np.sin(theta), np.zeros(n)], axis=1)
+        normals = np.repeat(np.array([[0.0, 0.0, 1.0]]), n, 0)
+        tangents = np.repeat(np.array([[1.0, 0.0, 0.0]]), n, 0)
+        return SurfaceSamples(points, normals, tangents, points[:, :2].copy())
+
+    return Surface("ground", np.pi * radius**2, sample, pattern, density, is_ground=True)
+
+
+def dome(centre: Array, radius: float, pattern: Pattern) -> Surface:
+    centre = np.asarray(centre, dtype=np.float64)
+
+    def sample(n: int, rng: np.random.Generator) -> SurfaceSamples:
+        a = _stratified_unit_square(n, rng)
+        z, phi = a[:, 0], 2 * np.pi * a[:, 1]  # uniform z gives uniform area on a sphere
+        ring = np.sqrt(1 - z**2)
+        normals = np.stack([ring * np.cos(phi), ring * np.sin(phi), z], axis=1)
+        tangents = np.stack([-np.sin(phi), np.cos(phi), np.zeros(n)], axis=1)
+        uv = np.stack([phi * radius, z * radius], axis=1)
+        return SurfaceSamples(centre[None] + radius * normals, normals, tangents, uv)
+
+    return Surface("dome", 2 * np.pi * radius**2, sample, pattern)
+
+
+def box_walls(
+    prefix: str, centre_xy: tuple[float, float], size_xy: tuple[float, float], z0: float, height: float,
+    styles: dict[str, FacadeStyle], seed: int,
+) -> list[Surface]:
+    """Four outward-facing walls of an axis-aligned box; `styles` keyed front/rear/left/right."""
+    cx, cy = centre_xy
+    hx, hy = size_xy[0] / 2, size_xy[1] / 2
+    up = np.array([0.0, 0.0, 1.0])
+    walls = {  # origin (bottom-left seen from outside), along-wall axis, wall length
+        "front": ([cx - hx, cy - hy, z0], [1.0, 0, 0], 2 * hx),
+        "rear": ([cx + hx, cy + hy, z0], [-1.0, 0, 0], 2 * hx),
+        "left": ([cx - hx, cy + hy, z0], [0, -1.0, 0], 2 * hy),
+        "right": ([cx + hx, cy - hy, z0], [0, 1.0, 0], 2 * hy),
+    }
+    surfaces = []
+    for side, (origin, axis, length) in walls.items():
+        pattern = facade_pattern(length, height, styles[side], seed + len(surfaces))
+        surfaces.append(planar_patch(f"{prefix}_{side}", np.array(origin), np.array(axis), up, (length, height), pattern))
+    return surfaces
+
+
+def landmark_surfaces(config: BuildingConfig) -> list[Surface]:
+    """All surfaces of the landmark described by `config`."""
+    rng = np.random.default_rng(config.palette_seed)
+    stone = np.array([0.78, 0.72, 0.62]) * (0.85 + 0.3 * rng.random(3))
+    trim = np.clip(stone * 1.15 + 0.05, 0, 1)
+    glass = np.array([0.12, 0.16, 0.24])
+    w, d, h = config.width, config.depth, config.height
+    floors = [0.33, 0.66]
+    styles = {
+        "front": FacadeStyle(stone, trim, glass, rows=2, cols=config.window_cols, door=True, rose_window=True, floors=floors),
+        "rear": FacadeStyle(stone * 0.95, trim, glass, rows=config.window_rows, cols=max(config.window_cols - 2, 2), window_shape="tall", floors=[0.5]),
+        "left": FacadeStyle(stone, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), floors=floors),
+        "right": FacadeStyle(stone * 1.03, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), window_shape="square", floors=floors),
+    }
+    surfaces = box_walls("body", (0.0, 0.0), (w, d), 0.0, h, styles, config.palette_seed)
+    surfaces.append(ground_disc(config.ground_radius, ground_pattern(config.palette_seed, np.array([w / 2, d / 2])), config.ground_density))
+    roof_color, roof_stripe = np.array([0.45, 0.22, 0.16]), np.array([0.32, 0.15, 0.11])
+    surfaces += _roof(config, roof_color, roof_stripe, stone, trim)
+    surfaces += _towers(config, stone, trim, glass, roof_color)
+    return surfaces
+
+
+def _roof(config: BuildingConfig, roof_color: Array, roof_stripe: Array, stone: Array, trim: Array) -> list[Surface]:
+    w, d, h, seed = config.width, config.depth, config.height, config.palette_seed
+    if config.roof == "flat":
+        return [planar_patch("roof", [-w / 2, -d / 2, h], [1.0, 0, 0], [0, 1.0, 0], (w, d), plain_pattern(roof_color, 1.0, roof_stripe, 0, seed))]
+    if config.roof == "dome":
+        flat = planar_patch("roof", [-w / 2, -d / 2, h], [1.0, 0, 0], [0, 1.0, 0], (w, d), plain_pattern(stone * 0.9, 2.0, trim, 0, seed))
+        radius = 0.42 * min(w, d)
+        ribs = plain_pattern(np.array([0.35, 0.5, 0.48]), radius * np.pi / 8, np.array([0.75, 0.7, 0.55]), 0, seed)
+        return [flat, dome([0.0, 0.0, h], radius, ribs)]
+    # pitched: ridge along y at x = 0, rising by half the width * 0.6
+    rise = 0.3 * w
+    slope = np.hypot(w / 2, rise)
+    tiles = plain_pattern(roof_color, 0.9, roof_stripe, 1, seed)
+    left = planar_patch("roof_left", [-w / 2, d / 2, h], [0, -1.0, 0], [w / 2 / slope, 0, rise / slope], (d, slope), tiles)
+    right = planar_patch("roof_right", [w / 2, -d / 2, h], [0, 1.0, 0], [-w / 2 / slope, 0, rise / slope], (d, slope), tiles)
+    gable_style = FacadeStyle(stone, trim, np.array([0.12, 0.16, 0.24]), rows=1, cols=1, window_shape="tall")
+
+    def triangle(uv: Array) -> Array:
+        return uv[:, 1] <= rise * (1 - np.abs(uv[:, 0] - w / 2) / (w / 2))
+
+    front = planar_patch("gable_front", [-w / 2, -d / 2, h], [1.0, 0, 0], [0, 0, 1.0], (w, rise), facade_pattern(w, rise, gable_style, seed + 11), keep=triangle)
+    rear = planar_patch("gable_rear", [w / 2, d / 2, h], [-1.0, 0, 0], [0, 0, 1.0], (w, rise), facade_pattern(w, rise, gable_style, seed + 12), keep=triangle)
+    return [left, right, front, rear]
+
+
+def _towers(config: BuildingConfig, stone: Array, trim: Array, glass: Array, roof_color: Array) -> list[Surface]:
+    w, d, h = config.width, config.depth, config.height
+    side = 0.22 * w
+    tower_h = config.tower_height_ratio * h
+    surfaces: list[Surface] = []
+    for index in range(min(config.towers, 2)):
+        cx = (-1 if index == 0 else 1) * (w / 2 - side / 2)
+        cy = -d / 2 - side / 2 + 0.3 * side  # protrudes from the front
+        style = FacadeStyle(stone * 1.02, trim, glass, rows=4, cols=1, window_shape="tall", floors=[0.25, 0.5, 0.75])
+        surfaces += box_walls(f"tower{index}", (cx, cy), (side, side), 0.0, tower_h, {k: style for k in ("front", "rear", "left", "right")}, config.palette_seed + 20 + index)
+        spire_h = 0.6 * side
+        slant = np.hypot(side / 2, spire_h)
+        pattern = plain_pattern(roof_color * 0.8, 0.7, roof_color * 0.6, 1, config.palette_seed)
+
+        def pyramid_face(uv: Array, _s=side, _slant=slant) -> Array:
+            return np.abs(uv[:, 0] - _s / 2) <= (_s / 2) * (1 - uv[:, 1] / _slant)
+
+        corners = [
+            ([cx - side / 2, cy - side / 2, tower_h], [1.0, 0, 0], [0, side / 2 / slant, spire_h / slant]),
+            ([cx + side / 2, cy + side / 2, tower_h], [-1.0, 0, 0], [0, -side / 2 / slant, spire_h / slant]),
+            ([cx - side / 2, cy + side / 2, tower_h], [0, -1.0, 0], [side / 2 / slant, 0, spire_h / slant]),
+            ([cx + side / 2, cy - side / 2, tower_h], [0, 1.0, 0], [-side / 2 / slant, 0, spire_h / slant]),
+        ]
+        for k, (origin, u_axis, v_axis) in enumerate(corners):
+            surfaces.append(planar_patch(f"tower{index}_spire{k}", origin, u_axis, v_axis, (side, slant), pattern, keep=pyramid_face))
+    return surfaces
+
+
+def rotation_to_quat(rot: Array) -> Array:
+    """(w, x, y, z) quaternions of rotation matrices [n, 3, 3]."""
+    return Rotation.from_matrix(rot).as_quat(scalar_first=True)
+
+
+def build_landmark(config: BuildingConfig, seed: int) -> GaussianScene:
+    """Sample `config.n_gaussians` surface Gaussians over the landmark (density-weighted by area)."""
+    rng = np.random.default_rng(seed)
+    surfaces = landmark_surfaces(config)
+    weights = np.array([s.area * s.density for s in surfaces])
+    counts = np.floor(weights / weights.sum() * config.n_gaussians).astype(int)
+    counts[np.argmax(weights)] += config.n_gaussians - counts.sum()
+    parts = []
+    for surface, count in zip(surfaces, counts):
+        if count == 0:
+            continue
+        samples = surface.sample(int(count), rng)
+        spacing = np.sqrt(surface.area / count)
+        bitangent = np.cross(samples.normals, samples.tangents)
+        rot = np.stack([samples.tangents, bitangent, samples.normals], axis=2)  # columns: local axes
+        tangent_sigma = 0.55 * spacing * np.exp(rng.normal(0.0, 0.15, (count, 2)))
+        scales = np.concatenate([tangent_sigma, 0.08 * tangent_sigma.mean(1, keepdims=True)], axis=1)
+        parts.append(dict(
+            means=samples.points, quats=rotation_to_quat(rot), scales=scales,
+            opacities=np.full(count, 0.97), normals=samples.normals,
+            albedo_sharp=surface.pattern(samples.uv, 0.04), albedo_smooth=surface.pattern(samples.uv, 0.6),
+            is_ground=np.full(count, surface.is_ground),
+        ))
+    return GaussianScene(**{key: np.concatenate([p[key] for p in parts]) for key in parts[0]})

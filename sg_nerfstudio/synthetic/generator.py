@@ -1,0 +1,375 @@
+"""Synthetic landmark scenes with exact ground truth: a reference capture and in-the-wild meta-images.
+
+Output layout (written atomically: a temporary sibling directory renamed into place at the end):
+
+    <scene>/scene.json                      settings, scene unit, per-photo ground truth
+    <scene>/reference/images/*.png          pseudo-synthetic renders (full coverage)
+    <scene>/reference/colmap/sparse/0/      COLMAP model, nerfstudio's default layout:
+                                            `ns-train ... colmap --data <scene>/reference` works as is
+    <scene>/meta/<name>/images/*.png        in-the-wild photos of one side
+    <scene>/meta/<name>/sparse/0/           COLMAP model in the meta-image's own frame (random Sim(3))
+    <scene>/meta/<name>/gt_transform.json   Sim(3) meta -> reference: x_ref = scale * R @ x_meta + t
+
+Scene unit: the reference world is scaled so that the median distance of the reference cameras to their
+centroid is 1; errors (e.g. a registration's translation error) are stated in that unit.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import pycolmap
+from rich.progress import Progress
+
+from sg_nerfstudio.synthetic.appearance import (
+    apply_camera_effects, draw_occluders, flat_lighting, random_look, sun_lighting,
+)
+from sg_nerfstudio.synthetic.building import BuildingConfig, GaussianScene, build_landmark
+from sg_nerfstudio.synthetic.capture import SIDE_AZIMUTH_DEG, Shot, meta_image_shots, reference_shots, render_shot, scene_tensors
+
+Array = np.ndarray
+REFERENCE_BACKGROUND = np.array([0.80, 0.85, 0.90])
+
+
+@dataclass
+class MetaImageSpec:
+    """One meta-image: photos of one side of the landmark."""
+
+    name: str
+    side: str
+    n_photos: int
+
+
+@dataclass
+class SceneConfig:
+    """Everything that defines a synthetic scene; the same config and seed give the same files."""
+
+    seed: int = 0
+    building: BuildingConfig = field(default_factory=BuildingConfig)
+    reference_size: tuple[int, int] = (160, 120)
+    """Reference render size (width, height) in pixels."""
+    reference_fov_deg: float = 62.0
+    n_ring: int = 36
+    """Ground-level reference views on a ring around the landmark."""
+    n_aerial: int = 24
+    """Aerial reference views on a higher orbit."""
+    ring_radius_ratio: float = 2.3
+    """Ring radius / half-diagonal of the main body."""
+    meta_images: tuple[str, ...] = ("front:16", "rear:12")
+    """Meta-images as SIDE:N_PHOTOS, side one of front, rear, left, right (each side once); named after the side."""
+    photo_size: tuple[int, int] = (160, 120)
+    """Base photo size (width, height); photos vary around it and may be portrait."""
+    appearance_strength: float = 1.0
+    """0 = photos lit and exposed like the reference, 1 = strong in-the-wild variation."""
+    occluder_rate: float = 0.3
+    """Fraction of photos with transient occluders."""
+    occluder_coverage: tuple[float, float] = (0.15, 0.45)
+    """Range of the image fraction hidden in an occluded photo."""
+    distortion: float = 0.06
+    """Largest |k1| of the SIMPLE_RADIAL photos (half of the photos are undistorted PINHOLE)."""
+    meta_scale_range: tuple[float, float] = (0.25, 4.0)
+    """Range of the random meta-image frame scale."""
+    n_sparse_points: int = 4000
+    """Largest number of points in each COLMAP model's sparse point cloud."""
+
+
+PRESETS: dict[str, SceneConfig] = {
+    "default": SceneConfig(),
+    "tiny": SceneConfig(
+        building=BuildingConfig(n_gaussians=4000, window_cols=4),
+        reference_size=(48, 36), n_ring=10, n_aerial=6,
+        meta_images=("front:5",), photo_size=(48, 36), n_sparse_points=800,
+    ),
+}
+
+
+class SceneGenerationError(RuntimeError):
+    """A scene cannot be generated from the given settings."""
+
+
+def meta_image_specs(config: SceneConfig) -> list[MetaImageSpec]:
+    """Parse `config.meta_images` ("side:n_photos") into specs, with one-sentence errors."""
+    specs = []
+    for entry in config.meta_images:
+        side, _, count = entry.partition(":")
+        if side not in SIDE_AZIMUTH_DEG or not count.isdigit():
+            raise SceneGenerationError(
+                f"Meta-image {entry!r} must be SIDE:N_PHOTOS with SIDE one of {', '.join(SIDE_AZIMUTH_DEG)}, e.g. front:16."
+            )
+        specs.append(MetaImageSpec(name=side, side=side, n_photos=int(count)))
+    return specs
+
+
+def validate(config: SceneConfig) -> None:
+    """Raise SceneGenerationError with one sentence for settings that cannot produce a scene."""
+    specs = meta_image_specs(config)
+    if config.n_ring + config.n_aerial < 3:
+        raise SceneGenerationError(f"A reference capture needs at least 3 views, got n_ring + n_aerial = {config.n_ring + config.n_aerial}.")
+    for spec in specs:
+        if spec.n_photos < 3:
+            raise SceneGenerationError(f"Meta-image '{spec.name}' needs at least 3 photos, got {spec.n_photos}.")
+    names = [spec.name for spec in specs]
+    if len(set(names)) != len(names):
+        raise SceneGenerationError(f"Each side can hold one meta-image, got {list(config.meta_images)}.")
+    if min(config.reference_size + config.photo_size) < 16:
+        raise SceneGenerationError("Image sizes must be at least 16 pixels on each side.")
+    if config.building.n_gaussians < 100:
+        raise SceneGenerationError(f"The landmark needs at least 100 Gaussians, got {config.building.n_gaussians}.")
+    if not 0.0 <= config.occluder_rate <= 1.0:
+        raise SceneGenerationError(f"occluder_rate must be in [0, 1], got {config.occluder_rate}.")
+
+
+def random_sim3(rng: np.random.Generator, scale_range: tuple[float, float]) -> pycolmap.Sim3d:
+    """A random similarity: uniform rotation, log-uniform scale, translation of a few scene units."""
+    quat = rng.normal(size=4)
+    quat /= np.linalg.norm(quat)
+    scale = float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(quat), rng.normal(0.0, 2.0, 3))
+
+
+def scale_shots(shots: list[Shot], factor: float) -> list[Shot]:
+    """Shots in a world scaled by `factor` about the origin (camera centres scale, rotations do not)."""
+    return [
+        replace(shot, cam_from_world=pycolmap.Rigid3d(shot.cam_from_world.rotation, shot.cam_from_world.translation * factor))
+        for shot in shots
+    ]
+
+
+def scene_unit_factor(shots: list[Shot]) -> float:
+    """Factor that makes the median distance of these cameras to their centroid equal to 1."""
+    centres = np.stack([shot.cam_from_world.inverse().translation for shot in shots])
+    return 1.0 / float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
+
+
+@dataclass
+class RenderedShot:
+    shot: Shot
+    image: Array  # [H, W, 3] float in [0, 1]
+    depth: Array  # [H, W] expected depth along camera z, inf where empty
+    metadata: dict
+
+
+def sparse_tracks(
+    points: Array, renders: list[RenderedShot], max_points: int, rng: np.random.Generator, min_track: int = 2
+) -> tuple[Array, list[list[tuple[int, Array]]]]:
+    """Pick up to `max_points` surface points seen by >= `min_track` shots, like an SfM point cloud.
+
+    A point is seen by a shot when it projects inside the image and its depth agrees with the rendered
+    surface depth there (within 5%), i.e. the landmark does not hide it.
+
+    Returns:
+        the kept points [M, 3] and, per point, a list of (shot index, pixel [2]) observations.
+    """
+    visible = np.zeros((len(renders), len(points)), bool)
+    pixels = np.zeros((len(renders), len(points), 2))
+    for index, rendered in enumerate(renders):
+        pose = rendered.shot.cam_from_world
+        cam_points = points @ pose.rotation.matrix().T + pose.translation
+        in_front = cam_points[:, 2] > 1e-3
+        pixels[index, in_front] = rendered.shot.camera.img_from_cam(cam_points[in_front])
+        h, w = rendered.depth.shape
+        cols, rows = np.floor(pixels[index, :, 0]).astype(int), np.floor(pixels[index, :, 1]).astype(int)
+        inside = in_front & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+        surface_depth = np.full(len(points), -np.inf)
+        surface_depth[inside] = rendered.depth[rows[inside], cols[inside]]
+        visible[index] = inside & (np.abs(cam_points[:, 2] - surface_depth) < 0.05 * cam_points[:, 2])
+    tracked = np.nonzero(visible.sum(0) >= min_track)[0]
+    chosen = np.sort(rng.choice(tracked, min(max_points, len(tracked)), replace=False))
+    observations = [[(int(s), pixels[s, p]) for s in np.nonzero(visible[:, p])[0]] for p in chosen]
+    return points[chosen], observations
+
+
+def build_reconstruction(renders: list[RenderedShot], points: Array, observations, shared_camera: bool) -> pycolmap.Reconstruction:
+    """A COLMAP reconstruction of the rendered shots (world frame of the shots) with the given tracks."""
+    keypoints: list[list[Array]] = [[] for _ in renders]
+    tracks = []
+    for obs in observations:
+        track = []
+        for shot_index, pixel in obs:
+            track.append((shot_index, len(keypoints[shot_index])))
+            keypoints[shot_index].append(pixel)
+        tracks.append(track)
+    recon = pycolmap.Reconstruction()
+    for index, rendered in enumerate(renders):
+        camera_id = 1 if shared_camera else index + 1
+        if not recon.exists_camera(camera_id):
+            camera = pycolmap.Camera(rendered.shot.camera.todict())
+            camera.camera_id = camera_id
+            recon.add_camera_with_trivial_rig(camera)
+        kps = np.array(keypoints[index], dtype=np.float64).reshape(-1, 2)
+        image = pycolmap.Image(name=rendered.shot.name, keypoints=kps, camera_id=camera_id, image_id=index + 1)
+        recon.add_image_with_trivial_frame(image, rendered.shot.cam_from_world)
+    for xyz, track in zip(points, tracks):
+        shot_index, kp_index = track[0]
+        pixel = keypoints[shot_index][kp_index]
+        img = renders[shot_index].image
+        color = (img[min(int(pixel[1]), img.shape[0] - 1), min(int(pixel[0]), img.shape[1] - 1)] * 255).astype(np.uint8)
+        colmap_track = pycolmap.Track()
+        for s_index, k_index in track:
+            colmap_track.add_element(s_index + 1, k_index)
+        recon.add_point3D(xyz, colmap_track, color)
+    return recon
+
+
+def write_images(renders: list[RenderedShot], directory: Path) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    for rendered in renders:
+        bgr = cv2.cvtColor((rendered.image * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
+        if not cv2.imwrite(str(directory / rendered.shot.name), bgr):
+            raise SceneGenerationError(f"Could not write image {directory / rendered.shot.name}.")
+
+
+def pose_matrix(pose: pycolmap.Rigid3d) -> list[list[float]]:
+    return pose.matrix().tolist()
+
+
+def sim3_record(sim3: pycolmap.Sim3d) -> dict:
+    """JSON form of a Sim(3) meta -> reference."""
+    matrix = np.eye(4)
+    matrix[:3] = sim3.matrix()
+    quat_xyzw = sim3.rotation.quat
+    return {
+        "convention": "x_reference = scale * R @ x_meta + translation",
+        "matrix": matrix.tolist(),
+        "scale": float(sim3.scale),
+        "rotation_wxyz": [float(quat_xyzw[3]), *map(float, quat_xyzw[:3])],
+        "translation": [float(v) for v in sim3.translation],
+    }
+
+
+def generate_scene(config: SceneConfig, output: Path, overwrite: bool = False, progress: Progress | None = None) -> dict:
+    """Generate the scene into `output` (atomically) and return the manifest written to scene.json."""
+    validate(config)
+    output = Path(output)
+    if output.exists() and not overwrite:
+        raise SceneGenerationError(f"Output directory {output} already exists; pass --overwrite to replace it.")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
+    try:
+        manifest = _generate_into(config, staging, progress)
+        if output.exists():
+            shutil.rmtree(output)
+        os.replace(staging, output)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return manifest
+
+
+def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -> dict:
+    started = time.perf_counter()
+    rng = np.random.default_rng(config.seed)
+    b = config.building
+    scene_m = build_landmark(b, seed=config.seed)
+    half_diagonal = 0.5 * float(np.hypot(b.width, b.depth))
+    ring_radius = config.ring_radius_ratio * half_diagonal
+    target = np.array([0.0, 0.0, 0.5 * b.height])
+    ref_shots_m = reference_shots(
+        config.n_ring, config.n_aerial, ring_radius, 0.12 * b.height, 40.0, target,
+        *config.reference_size, config.reference_fov_deg, rng,
+    )
+    unit = scene_unit_factor(ref_shots_m)
+    scene = scene_m.scaled(unit)
+    geometry = scene_tensors(scene)
+    ref_shots = scale_shots(ref_shots_m, unit)
+
+    specs = meta_image_specs(config)
+    total = len(ref_shots) + sum(spec.n_photos for spec in specs)
+    task = progress.add_task("rendering", total=total) if progress else None
+
+    def advance() -> None:
+        if progress is not None:
+            progress.advance(task)
+
+    reference_colors = flat_lighting(scene.albedo_smooth, scene.normals)
+    ref_renders = []
+    for shot in ref_shots:
+        image, depth = render_shot(geometry, reference_colors, shot, REFERENCE_BACKGROUND)
+        ref_renders.append(RenderedShot(shot, image, depth, {}))
+        advance()
+    write_images(ref_renders, root / "reference" / "images")
+    points, observations = sparse_tracks(scene.means, ref_renders, config.n_sparse_points, rng)
+    ref_recon = build_reconstruction(ref_renders, points, observations, shared_camera=True)
+    (root / "reference" / "colmap" / "sparse" / "0").mkdir(parents=True)
+    ref_recon.write_binary(str(root / "reference" / "colmap" / "sparse" / "0"))
+
+    manifest = {
+        "generator": "sg_nerfstudio.synthetic",
+        "config": _jsonable(asdict(config)),
+        "scene_unit": "median distance of the reference cameras to their centroid = 1",
+        "metres_per_unit": 1.0 / unit,
+        "n_gaussians": int(len(scene.means)),
+        "reference": {"path": "reference", "n_images": len(ref_renders), "n_points3D": int(ref_recon.num_points3D())},
+        "meta_images": [],
+    }
+    for spec in specs:
+        manifest["meta_images"].append(
+            _generate_meta_image(spec, config, scene, geometry, ring_radius, unit, rng, root, advance)
+        )
+    manifest["wall_time_s"] = round(time.perf_counter() - started, 2)
+    (root / "scene.json").write_text(json.dumps(manifest, indent=2))
+    return manifest
+
+
+def _generate_meta_image(spec, config, scene, geometry, ring_radius, unit, rng, root, advance) -> dict:
+    b = config.building
+    facade = (b.width if spec.side in ("front", "rear") else b.depth, b.height)
+    shots = scale_shots(
+        meta_image_shots(spec.side, spec.n_photos, ring_radius, 1.7, facade, config.photo_size, config.distortion, rng, spec.name),
+        unit,
+    )
+    renders = []
+    for shot in shots:
+        look = random_look(config.appearance_strength, rng)
+        image, depth = render_shot(geometry, sun_lighting(scene.albedo_sharp, scene.normals, look), shot, look.sky)
+        image = apply_camera_effects(image, look, rng)
+        coverage = 0.0
+        if rng.random() < config.occluder_rate:
+            image, coverage = draw_occluders(image, rng.uniform(*config.occluder_coverage), rng)
+        metadata = {
+            "name": shot.name,
+            "occluded_fraction": round(coverage, 4),
+            "exposure": round(look.exposure, 4),
+            "camera_model": shot.camera.model.name,
+            "cam_from_world_reference": pose_matrix(shot.cam_from_world),
+        }
+        renders.append(RenderedShot(shot, image, depth, metadata))
+        advance()
+    directory = root / "meta" / spec.name
+    write_images(renders, directory / "images")
+    points, observations = sparse_tracks(scene.means, renders, config.n_sparse_points, rng)
+    recon = build_reconstruction(renders, points, observations, shared_camera=False)
+    gt_meta_to_ref = random_sim3(rng, config.meta_scale_range)
+    recon.transform(gt_meta_to_ref.inverse())
+    (directory / "sparse" / "0").mkdir(parents=True)
+    recon.write_binary(str(directory / "sparse" / "0"))
+    (directory / "gt_transform.json").write_text(json.dumps(sim3_record(gt_meta_to_ref), indent=2))
+    return {
+        "name": spec.name,
+        "side": spec.side,
+        "path": f"meta/{spec.name}",
+        "n_photos": len(renders),
+        "n_points3D": int(recon.num_points3D()),
+        "photos": [r.metadata for r in renders],
+    }
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    return value

@@ -1,0 +1,143 @@
+"""The synthetic scene generator: COLMAP models, ground truth, sparse points, determinism, bad inputs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from sg_nerfstudio.scripts.make_scene import main as make_scene_main
+from sg_nerfstudio.synthetic import PRESETS, SceneGenerationError, generate_scene
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory) -> Path:
+    output = tmp_path_factory.mktemp("scenes") / "tiny"
+    assert make_scene_main(["--preset", "tiny", "--output", str(output), "--occluder-rate", "0.6"]) == 0
+    return output
+
+
+def load(path: Path) -> pycolmap.Reconstruction:
+    return pycolmap.Reconstruction(str(path))
+
+
+def test_models_load_with_pycolmap_and_images_exist(tiny_scene):
+    manifest = json.loads((tiny_scene / "scene.json").read_text())
+    reference = load(tiny_scene / "reference" / "colmap" / "sparse" / "0")
+    assert reference.num_images() == manifest["reference"]["n_images"] == 16
+    assert reference.num_points3D() > 50
+    for image in reference.images.values():
+        assert (tiny_scene / "reference" / "images" / image.name).is_file()
+    meta = load(tiny_scene / "meta" / "front" / "sparse" / "0")
+    assert meta.num_images() == 5 and meta.num_cameras() == 5  # one camera per photo
+    sizes = {(c.width, c.height) for c in meta.cameras.values()}
+    assert len(sizes) >= 1
+    for image in meta.images.values():
+        photo = tiny_scene / "meta" / "front" / "images" / image.name
+        import cv2
+
+        pixels = cv2.imread(str(photo))
+        camera = meta.cameras[image.camera_id]
+        assert pixels.shape[:2] == (camera.height, camera.width)
+
+
+def test_models_load_with_nerfstudio_colmap_dataparser(tiny_scene):
+    from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+
+    outputs = ColmapDataParserConfig(data=tiny_scene / "reference", load_3D_points=True).setup().get_dataparser_outputs("train")
+    assert len(outputs.image_filenames) > 0
+    assert all(Path(f).is_file() for f in outputs.image_filenames)
+    assert outputs.metadata["points3D_xyz"].shape[0] > 50
+    meta_outputs = ColmapDataParserConfig(
+        data=tiny_scene / "meta" / "front", colmap_path=Path("sparse/0"), eval_mode="all"
+    ).setup().get_dataparser_outputs("train")
+    assert len(meta_outputs.image_filenames) == 5
+
+
+def test_ground_truth_transform_maps_meta_cameras_onto_rendered_cameras(tiny_scene):
+    manifest = json.loads((tiny_scene / "scene.json").read_text())
+    record = json.loads((tiny_scene / "meta" / "front" / "gt_transform.json").read_text())
+    matrix = np.array(record["matrix"])
+    scale = record["scale"]
+    rotation = matrix[:3, :3] / scale
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    meta = load(tiny_scene / "meta" / "front" / "sparse" / "0")
+    truth = {p["name"]: np.array(p["cam_from_world_reference"]) for p in manifest["meta_images"][0]["photos"]}
+    assert len(truth) == meta.num_images()
+    for image in meta.images.values():
+        cam_from_meta = image.cam_from_world().matrix()
+        centre_meta = -cam_from_meta[:3, :3].T @ cam_from_meta[:3, 3]
+        centre_ref = scale * rotation @ centre_meta + matrix[:3, 3]
+        world_from_cam_ref = rotation @ cam_from_meta[:3, :3].T
+        expected = truth[image.name]
+        np.testing.assert_allclose(world_from_cam_ref, expected[:3, :3].T, atol=1e-6)
+        np.testing.assert_allclose(centre_ref, -expected[:3, :3].T @ expected[:3, 3], atol=1e-6)
+
+
+def test_meta_frame_is_a_nontrivial_similarity(tiny_scene):
+    record = json.loads((tiny_scene / "meta" / "front" / "gt_transform.json").read_text())
+    assert record["scale"] != pytest.approx(1.0, abs=1e-3)
+    assert not np.allclose(np.array(record["matrix"])[:3, :3], np.eye(3) * record["scale"], atol=1e-2)
+
+
+@pytest.mark.parametrize("model", ["reference/colmap/sparse/0", "meta/front/sparse/0"])
+def test_sparse_points_reproject_inside_images_onto_their_keypoints(tiny_scene, model):
+    recon = load(tiny_scene / model)
+    assert recon.num_points3D() > 20
+    for point in recon.points3D.values():
+        assert point.track.length() >= 2
+        for element in point.track.elements:
+            image = recon.images[element.image_id]
+            camera = recon.cameras[image.camera_id]
+            projected = image.project_point(point.xyz)
+            assert projected is not None
+            assert 0 <= projected[0] < camera.width and 0 <= projected[1] < camera.height
+            np.testing.assert_allclose(projected, image.points2D[element.point2D_idx].xy, atol=1e-3)
+
+
+def test_distorted_photos_are_described_by_their_models(tiny_scene):
+    manifest = json.loads((tiny_scene / "scene.json").read_text())
+    models = {p["camera_model"] for p in manifest["meta_images"][0]["photos"]}
+    assert models <= {"PINHOLE", "SIMPLE_RADIAL"}
+    occluded = [p["occluded_fraction"] for p in manifest["meta_images"][0]["photos"]]
+    assert any(f > 0.05 for f in occluded)
+
+
+def digest(directory: Path) -> str:
+    h = hashlib.sha256()
+    for path in sorted(p for p in directory.rglob("*") if p.is_file() and p.name != "scene.json"):
+        h.update(path.relative_to(directory).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def test_same_seed_gives_identical_files(tmp_path, tiny_scene):
+    config = replace(PRESETS["tiny"], occluder_rate=0.6)
+    generate_scene(config, tmp_path / "again")
+    assert digest(tmp_path / "again") == digest(tiny_scene)
+    generate_scene(replace(config, seed=1), tmp_path / "other")
+    assert digest(tmp_path / "other") != digest(tiny_scene)
+
+
+def test_bad_settings_fail_with_one_sentence_and_leave_nothing(tmp_path, capsys):
+    with pytest.raises(SceneGenerationError, match="at least 3 photos"):
+        generate_scene(replace(PRESETS["tiny"], meta_images=("front:2",)), tmp_path / "x")
+    with pytest.raises(SceneGenerationError, match="SIDE:N_PHOTOS"):
+        generate_scene(replace(PRESETS["tiny"], meta_images=("top:5",)), tmp_path / "x")
+    with pytest.raises(SceneGenerationError, match="one meta-image"):
+        generate_scene(replace(PRESETS["tiny"], meta_images=("front:5", "front:6")), tmp_path / "x")
+    assert list(tmp_path.iterdir()) == []
+
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("user data")
+    assert make_scene_main(["--preset", "tiny", "--output", str(existing)]) == 1
+    assert "already exists" in capsys.readouterr().err
+    assert (existing / "keep.txt").read_text() == "user data"
+    assert make_scene_main(["--preset", "nonexistent", "--output", str(tmp_path / "y")]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing"]

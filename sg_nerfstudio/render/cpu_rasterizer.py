@@ -208,15 +208,14 @@ def composite_camera(
     cov2d: Tensor,
     opacities: Tensor,
     colors: Tensor,
-    depths: Tensor,
     width: int,
     height: int,
 ) -> tuple[Tensor, Tensor]:
-    """Render the visible Gaussians of one camera.
+    """Render the visible Gaussians of one camera, given front to back.
 
     Args:
-        means2d: [M, 2], conics: [M, 3], cov2d: [M, 3], opacities: [M], colors: [M, D], depths: [M]
-            of the camera's visible Gaussians (any order).
+        means2d: [M, 2], conics: [M, 3], cov2d: [M, 3], opacities: [M], colors: [M, D] of the camera's
+            visible Gaussians sorted by increasing depth (see `front_to_back`).
 
     Returns:
         render [H, W, D] (no background) and alpha [H, W, 1].
@@ -228,17 +227,19 @@ def composite_camera(
         zero = (means2d.sum() + conics.sum() + cov2d.sum() + opacities.sum() + colors.sum()) * 0.0
         return zero + colors.new_zeros(height, width, channels), zero + colors.new_zeros(height, width, 1)
 
-    order = torch.argsort(depths.detach(), stable=True)
-    means2d, conics, cov2d = means2d[order], conics[order], cov2d[order]
-    opacities, colors = opacities[order], colors[order]
     plan = plan_compositing(means2d.detach(), conics.detach(), cov2d.detach(), opacities.detach(), width, height)
-
     alphas = _pair_alphas(_gaussian_table(means2d, conics, opacities), plan.gaussian, plan.pixel, width)
     pair_counts = plan.pixel_offsets[1:] - plan.pixel_offsets[:-1]
     weights = alphas * _segmented_transmittance(alphas, pair_counts)
     render = _SparseComposite.apply(weights, colors, plan)
     alpha = torch.zeros(n_pixels, dtype=weights.dtype).index_add(0, plan.pixel, weights)
     return render.reshape(height, width, channels), alpha.reshape(height, width, 1)
+
+
+def front_to_back(radii: Tensor, depths: Tensor) -> Tensor:
+    """Indices [M] of the Gaussians with radii > 0, sorted by increasing depth (ties by index)."""
+    visible = torch.nonzero(radii > 0).squeeze(1)
+    return visible[torch.argsort(depths.detach()[visible], stable=True)]
 
 
 def _gaussian_table(means2d: Tensor, conics: Tensor, opacities: Tensor) -> Tensor:

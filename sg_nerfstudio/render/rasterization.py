@@ -18,7 +18,7 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
-from sg_nerfstudio.render.cpu_rasterizer import composite_camera
+from sg_nerfstudio.render.cpu_rasterizer import composite_camera, front_to_back
 from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians
 from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
 
@@ -122,28 +122,43 @@ def _rasterize_torch(
     means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
     eps2d, sh_degree, backgrounds, render_mode, rasterize_mode,
 ) -> tuple[Tensor, Tensor, dict]:
-    n_cameras = viewmats.shape[0]
-    covars = covariances_from_quats_scales(quats, scales)
-    proj = project_gaussians(
-        means, covars, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane,
-        far_plane=far_plane, calc_compensations=rasterize_mode == "antialiased",
-    )
-    per_camera_opacities = opacities[None].expand(n_cameras, -1)
-    if proj.compensations is not None:
-        per_camera_opacities = per_camera_opacities * proj.compensations
+    """CPU backend. Culling runs without gradients on all N Gaussians; each camera then re-projects only
+    its visible ones with gradients, so backward work scales with what the camera sees."""
+    n_cameras, n_gaussians = viewmats.shape[0], means.shape[0]
+    antialiased = rasterize_mode == "antialiased"
+    projection_args = dict(width=width, height=height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane)
+    with torch.no_grad():
+        culling = project_gaussians(means, covariances_from_quats_scales(quats, scales), viewmats, Ks, **projection_args)
+    visible_ids = [front_to_back(culling.radii[cam], culling.depths[cam]) for cam in range(n_cameras)]
+
+    # means2d [C, N, 2] for DefaultStrategy: the grad it reads after backward is the gradient of the
+    # loss w.r.t. this very tensor, so rendering gathers the visible means back out of it.
+    means2d_all, opacities_all = [], []
+    projections = []
+    for cam, ids in enumerate(visible_ids):
+        proj = project_gaussians(
+            means.index_select(0, ids),
+            covariances_from_quats_scales(quats.index_select(0, ids), scales.index_select(0, ids)),
+            viewmats[cam : cam + 1], Ks[cam : cam + 1], calc_compensations=antialiased, **projection_args,
+        )
+        cam_opacities = opacities.index_select(0, ids)
+        if proj.compensations is not None:
+            cam_opacities = cam_opacities * proj.compensations[0]
+        projections.append((proj, cam_opacities))
+        means2d_all.append(culling.means2d[cam].index_copy(0, ids, proj.means2d[0]))
+        opacities_all.append(opacities.detach().clone().index_copy(0, ids, cam_opacities.detach()))
+    means2d = torch.stack(means2d_all) if n_cameras else culling.means2d
 
     renders, alphas = [], []
-    for cam in range(n_cameras):
-        visible = torch.nonzero(proj.radii[cam] > 0).squeeze(1)
-        cam_colors = _camera_colors(colors, sh_degree, means, viewmats[cam], visible)
-        depths = proj.depths[cam, visible]
+    for cam, (ids, (proj, cam_opacities)) in enumerate(zip(visible_ids, projections)):
+        cam_colors = _camera_colors(colors, sh_degree, means, viewmats[cam], ids)
+        depths = proj.depths[0]
         if render_mode in ("RGB+D", "RGB+ED"):
             cam_colors = torch.cat([cam_colors, depths[:, None]], dim=-1)
         elif render_mode in ("D", "ED"):
             cam_colors = depths[:, None]
         render, alpha = composite_camera(
-            proj.means2d[cam, visible], proj.conics[cam, visible], proj.cov2d[cam, visible],
-            per_camera_opacities[cam, visible], cam_colors, depths, width, height,
+            means2d[cam].index_select(0, ids), proj.conics[0], proj.cov2d[0], cam_opacities, cam_colors, width, height
         )
         renders.append(render)
         alphas.append(alpha)
@@ -162,11 +177,11 @@ def _rasterize_torch(
     info = {
         "camera_ids": None,
         "gaussian_ids": None,
-        "radii": proj.radii,
-        "means2d": proj.means2d,
-        "depths": proj.depths,
-        "conics": proj.conics,
-        "opacities": per_camera_opacities,
+        "radii": culling.radii,
+        "means2d": means2d,
+        "depths": culling.depths,
+        "conics": culling.conics,
+        "opacities": torch.stack(opacities_all) if n_cameras else opacities[None, :0],
         "width": width,
         "height": height,
         "n_cameras": n_cameras,
@@ -175,14 +190,14 @@ def _rasterize_torch(
     return render, alpha, info
 
 
-def _camera_colors(colors: Tensor, sh_degree: Optional[int], means: Tensor, viewmat: Tensor, visible: Tensor) -> Tensor:
-    """Per-Gaussian colours [M, D] of the visible Gaussians for one camera."""
+def _camera_colors(colors: Tensor, sh_degree: Optional[int], means: Tensor, viewmat: Tensor, ids: Tensor) -> Tensor:
+    """Colours [M, D] of the Gaussians `ids` [M] for one camera (SH evaluated towards its centre)."""
     if sh_degree is None:
-        return colors[visible]
+        return colors.index_select(0, ids)
     rot, trans = viewmat[:3, :3], viewmat[:3, 3]
     camera_centre = -rot.transpose(0, 1) @ trans
-    dirs = means[visible] - camera_centre
-    return torch.clamp_min(evaluate_sh(sh_degree, dirs, colors[visible]) + 0.5, 0.0)
+    dirs = means.index_select(0, ids) - camera_centre
+    return torch.clamp_min(evaluate_sh(sh_degree, dirs, colors.index_select(0, ids)) + 0.5, 0.0)
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode) -> None:

@@ -15,13 +15,6 @@ from sg_nerfstudio.scripts.make_scene import main as make_scene_main
 from sg_nerfstudio.synthetic import PRESETS, SceneGenerationError, generate_scene
 
 
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory) -> Path:
-    output = tmp_path_factory.mktemp("scenes") / "tiny"
-    assert make_scene_main(["--preset", "tiny", "--output", str(output), "--occluder-rate", "0.6"]) == 0
-    return output
-
-
 def load(path: Path) -> pycolmap.Reconstruction:
     return pycolmap.Reconstruction(str(path))
 

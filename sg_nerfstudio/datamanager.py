@@ -1,0 +1,83 @@
+"""Full-image datamanager that also serves each image's cached teacher feature map.
+
+Extends nerfstudio's `FullImageDatamanager`: at start-up (training/eval, not inference) it checks that
+every image file exists, builds the teacher (failing early if it cannot load), computes or loads from
+the on-disk cache the teacher map of every cached (undistorted) image, and stores it in the image's
+cache entry, so every batch (`next_train`, `next_eval`, the eval loader) carries
+`batch["teacher_features"]` [grid, grid, D]. On a CPU device images are cached on that device rather than
+in pinned memory (pinning needs CUDA).
+
+The teacher's output width and a feature sample for the model's fixed PCA colouring go to the model
+through `train_dataset.metadata` ("teacher_feature_dim", "teacher_feature_sample").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Type, Union
+
+import torch
+
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.features import FeatureCache, TeacherConfig, build_teacher, extract_all, teacher_feature_dim
+
+PCA_SAMPLE_SIZE = 20000
+
+
+class DatasetInputError(InputError):
+    """A dataset the datamanager cannot train on."""
+
+
+@dataclass
+class FeatureDatamanagerConfig(FullImageDatamanagerConfig):
+    _target: Type = field(default_factory=lambda: FeatureDatamanager)
+    teacher: TeacherConfig = field(default_factory=TeacherConfig)
+    """The 2D feature extractor distilled into the splat."""
+    cache_images_type: Literal["uint8", "float32"] = "uint8"
+
+
+class FeatureDatamanager(FullImageDatamanager):
+    config: FeatureDatamanagerConfig
+
+    def __init__(
+        self,
+        config: FeatureDatamanagerConfig,
+        device: Union[torch.device, str] = "cpu",
+        test_mode: Literal["test", "val", "inference"] = "val",
+        world_size: int = 1,
+        local_rank: int = 0,
+        **kwargs,
+    ):
+        super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
+        if torch.device(device).type == "cpu":
+            self.config.cache_images = "gpu"  # i.e. "on the training device": no pinned memory without CUDA
+        self.train_dataset.metadata["teacher_feature_dim"] = teacher_feature_dim(config.teacher)
+        if test_mode == "inference":
+            return  # rendering a trained model needs neither images nor teacher
+        self._check_images_exist()
+        self.teacher = build_teacher(config.teacher)
+        cache = FeatureCache(config.teacher.cache_dir)
+        for split, cached in (("train", self.cached_train), ("eval", self.cached_eval)):
+            maps = extract_all(lambda i, c=cached: c[i]["image"], len(cached), self.teacher, cache, f"Teacher features ({split})")
+            for entry, features in zip(cached, maps):
+                entry["teacher_features"] = features
+        self.train_dataset.metadata["teacher_feature_sample"] = self._feature_sample()
+
+    def _check_images_exist(self) -> None:
+        for split, dataset in (("train", self.train_dataset), ("eval", self.eval_dataset)):
+            missing = [Path(p) for p in dataset.image_filenames if not Path(p).is_file()]
+            if missing:
+                shown = ", ".join(p.name for p in missing[:3]) + (" ..." if len(missing) > 3 else "")
+                raise DatasetInputError(
+                    f"{len(missing)} of the {len(dataset.image_filenames)} {split} images listed by the COLMAP model "
+                    f"are missing from {missing[0].parent} ({shown}); expected every image the model lists."
+                )
+
+    def _feature_sample(self) -> torch.Tensor:
+        """[<= PCA_SAMPLE_SIZE, D] teacher vectors drawn evenly from the training maps."""
+        vectors = torch.cat([entry["teacher_features"].reshape(-1, entry["teacher_features"].shape[-1]) for entry in self.cached_train])
+        step = max(1, vectors.shape[0] // PCA_SAMPLE_SIZE)
+        return vectors[::step][:PCA_SAMPLE_SIZE].clone()

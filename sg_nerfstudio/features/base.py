@@ -1,0 +1,66 @@
+"""What every teacher shares: its settings, the extractor interface, and the load error."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional, Protocol
+
+import torch
+from torch import Tensor
+
+from sg_nerfstudio.errors import InputError
+
+
+class TeacherInputError(InputError):
+    """A teacher that cannot be built from the given settings or files."""
+
+
+@dataclass
+class TeacherConfig:
+    """The 2D feature extractor whose maps the feature splat distils (the paper's "teacher")."""
+
+    name: Literal["dinov2", "offline"] = "dinov2"
+    """dinov2: ViT-S/14 patch tokens (384-d, needs local weights); offline: dense oriented-gradient
+    descriptor that needs no weights (for machines without DINOv2)."""
+    input_size: Optional[int] = None
+    """Square side the image is resized to before extraction; default 1400 for dinov2 (100x100 grid,
+    as in the paper) and 256 for offline (32x32 grid). Must be a multiple of the patch/cell size."""
+    weights: Optional[Path] = None
+    """dinov2 only: a local checkpoint (torch-hub .pth, Hugging Face .safetensors/.bin, or a Hugging Face
+    model directory). When unset, the torch-hub and Hugging Face caches are searched."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where extraction runs; auto = CUDA when available."""
+    cache_dir: Optional[Path] = None
+    """Feature cache directory; default $XDG_CACHE_HOME/sg_nerfstudio/features (~/.cache/...)."""
+
+
+class Teacher(Protocol):
+    """Maps an image to a dense feature grid."""
+
+    feature_dim: int
+    grid_size: int
+
+    def settings(self) -> dict:
+        """Everything that changes the output, for cache keys."""
+
+    def extract(self, image: Tensor) -> Tensor:
+        """image [H, W, 3] float in [0, 1] -> features [grid, grid, feature_dim] float32 (CPU)."""
+
+
+def resolve_device(device: str) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise TeacherInputError("Teacher device 'cuda' was requested but CUDA is not available; use --...teacher.device cpu.")
+    return torch.device(device)
+
+
+def checked_grid(input_size: int, step: int, what: str) -> int:
+    """input_size / step, or a one-sentence error when it is not a positive multiple."""
+    if input_size <= 0 or input_size % step != 0:
+        raise TeacherInputError(
+            f"Teacher input size {input_size} is not a positive multiple of the {what} ({step} pixels); "
+            f"use e.g. {max(step, (input_size // step) * step) if input_size > 0 else step * 32}."
+        )
+    return input_size // step

@@ -1,0 +1,94 @@
+"""A weight-free dense descriptor: multi-scale histograms of oriented log-intensity gradients.
+
+For machines without DINOv2 weights. Per location of a grid (one cell = `CELL` pixels of the resized
+image) it stacks, for each of three pooling scales (1, 2 and 4 cells), a histogram of signed gradient
+orientations of the *logarithm* of each colour channel (summed over channels, magnitude-weighted, soft
+binned), and normalises each histogram by its length plus an image-relative floor.
+
+Invariant (up to clipping, sensor noise and the small log offset) to:
+- global exposure (a multiplicative gain: log adds a constant, the gradient removes it);
+- white balance (independent per-channel gains, removed the same way per channel);
+- gamma / contrast curves I -> I^g (log-gradients scale by g; the normalisation removes the scale).
+Not invariant to: viewpoint changes beyond a cell, cast shadows and shading edges, occluders, blur
+(it changes gradient magnitudes across scales). That is the right trade for registration: structure
+(windows, edges, ornaments) is kept, photometric conditions are dropped.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sg_nerfstudio.features.base import TeacherConfig, checked_grid, resolve_device
+
+CELL = 8
+ORIENTATIONS = 12
+POOLING_CELLS = (1, 2, 4)
+DEFAULT_INPUT_SIZE = 256
+LOG_OFFSET = 2.0 / 255.0
+VERSION = 1
+
+
+class OfflineTeacher:
+    """image [H, W, 3] in [0, 1] -> [grid, grid, 36] oriented-gradient descriptor (grid = input_size / 8)."""
+
+    feature_dim = ORIENTATIONS * len(POOLING_CELLS)
+
+    def __init__(self, config: TeacherConfig):
+        self.input_size = config.input_size or DEFAULT_INPUT_SIZE
+        self.grid_size = checked_grid(self.input_size, CELL, "offline descriptor cell size")
+        self.device = resolve_device(config.device)
+        sobel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
+        self.kernels = torch.stack([sobel, sobel.T])[:, None].to(self.device)  # [2, 1, 3, 3]
+
+    def settings(self) -> dict:
+        return {"teacher": "offline_hog", "version": VERSION, "input_size": self.input_size, "cell": CELL,
+                "orientations": ORIENTATIONS, "pooling_cells": list(POOLING_CELLS)}
+
+    @torch.no_grad()
+    def extract(self, image: Tensor) -> Tensor:
+        pixels = image.to(self.device, torch.float32).permute(2, 0, 1)[None]
+        pixels = F.interpolate(pixels, size=(self.input_size, self.input_size), mode="bilinear", align_corners=False, antialias=True)
+        log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
+        gradients = F.conv2d(F.pad(log_channels, (1, 1, 1, 1), mode="replicate"), self.kernels)  # [3, 2, S, S]
+        histogram = _soft_orientation_histogram(gradients[:, 0], gradients[:, 1]).sum(0)  # [B, S, S]
+        cells = F.avg_pool2d(histogram[None], CELL)  # [1, B, G, G]
+        blocks = []
+        for width in POOLING_CELLS:
+            pooled = cells if width == 1 else _box_pool(cells, width)
+            norm = pooled.norm(dim=1, keepdim=True)
+            floor = 0.1 * norm.flatten().median().clamp(min=1e-6)
+            blocks.append(pooled / torch.sqrt(norm**2 + floor**2))
+        features = torch.cat(blocks, dim=1) / math.sqrt(len(POOLING_CELLS))
+        return features[0].permute(1, 2, 0).contiguous().cpu()
+
+
+def _soft_orientation_histogram(gx: Tensor, gy: Tensor) -> Tensor:
+    """Magnitude-weighted signed orientation histogram with linear interpolation between bins.
+
+    Args:
+        gx, gy: [C, S, S] gradients.
+
+    Returns:
+        [C, ORIENTATIONS, S, S].
+    """
+    magnitude = torch.sqrt(gx**2 + gy**2)
+    position = (torch.atan2(gy, gx) % (2 * math.pi)) / (2 * math.pi) * ORIENTATIONS
+    lower = torch.floor(position)
+    upper_weight = position - lower
+    lower_bin = lower.long() % ORIENTATIONS
+    upper_bin = (lower_bin + 1) % ORIENTATIONS
+    histogram = torch.zeros(gx.shape[0], ORIENTATIONS, *gx.shape[1:], device=gx.device)
+    histogram.scatter_add_(1, lower_bin[:, None], (magnitude * (1 - upper_weight))[:, None])
+    histogram.scatter_add_(1, upper_bin[:, None], (magnitude * upper_weight)[:, None])
+    return histogram
+
+
+def _box_pool(cells: Tensor, width: int) -> Tensor:
+    """Mean over a width x width window of cells centred (as well as an even width allows) on each cell."""
+    left = (width - 1) // 2
+    padded = F.pad(cells, (left, width - 1 - left, left, width - 1 - left), mode="replicate")
+    return F.avg_pool2d(padded, width, stride=1)

@@ -1,0 +1,91 @@
+"""`sg-feature-splat`: the nerfstudio method registered through the `nerfstudio.method_configs` entry point.
+
+    ns-train sg-feature-splat colmap --data <scene>/reference                      # DINOv2 teacher (local weights)
+    ns-train sg-feature-splat --pipeline.datamanager.teacher.name offline \\
+        --machine.device-type cpu colmap --data <scene>/reference                  # no weights, CPU
+
+splatfacto's optimisers, plus the supplement's: per-Gaussian features Adam lr 0.05 -> 1.6e-6
+(exponential decay, eps 1e-15) and the speedup decoder Adam lr 1e-3 (eps 1e-15); 12000 steps.
+"""
+
+from __future__ import annotations
+
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from dataclasses import dataclass, field
+from typing import Type
+
+from nerfstudio.engine.schedulers import ExponentialDecayScheduler
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig as _NerfstudioExponentialDecayConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from sg_nerfstudio.datamanager import FeatureDatamanagerConfig
+from sg_nerfstudio.model import FeatureSplatfactoModelConfig
+
+MAX_STEPS = 12000
+
+
+class ExponentialDecayScheduler_(ExponentialDecayScheduler):
+    """nerfstudio's exponential decay with python-float learning rates.
+
+    nerfstudio 1.1.5 computes them with numpy, so numpy scalars land in every checkpoint, and torch >= 2.6
+    refuses to load those with `weights_only=True` (the default that `ns-viewer`, `ns-render` and
+    `ns-export` use). Same schedule, plain floats.
+    """
+
+    def get_scheduler(self, optimizer, lr_init: float):
+        scheduler = super().get_scheduler(optimizer, lr_init)
+        scheduler.lr_lambdas = [lambda step, f=f: float(f(step)) for f in scheduler.lr_lambdas]
+        scheduler._last_lr = [float(lr) for lr in scheduler._last_lr]
+        for group in optimizer.param_groups:
+            group["lr"] = float(group["lr"])
+        return scheduler
+
+
+@dataclass
+class ExponentialDecaySchedulerConfig(_NerfstudioExponentialDecayConfig):
+    _target: Type = field(default_factory=lambda: ExponentialDecayScheduler_)
+
+
+def _adam(lr: float, lr_final: float | None = None, **scheduler) -> dict:
+    return {
+        "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
+        "scheduler": ExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=MAX_STEPS, **scheduler) if lr_final else None,
+    }
+
+
+sg_feature_splat_config = TrainerConfig(
+    method_name="sg-feature-splat",
+    steps_per_eval_image=100,
+    steps_per_eval_batch=0,
+    steps_per_save=2000,
+    steps_per_eval_all_images=1000,
+    max_num_iterations=MAX_STEPS,
+    mixed_precision=False,
+    pipeline=VanillaPipelineConfig(
+        datamanager=FeatureDatamanagerConfig(dataparser=ColmapDataParserConfig(load_3D_points=True)),
+        model=FeatureSplatfactoModelConfig(),
+    ),
+    optimizers={
+        "means": _adam(1.6e-4, 1.6e-6),
+        "features_dc": _adam(0.0025),
+        "features_rest": _adam(0.0025 / 20),
+        "opacities": _adam(0.05),
+        "scales": _adam(0.005),
+        "quats": _adam(0.001),
+        "features": _adam(0.05, 1.6e-6),
+        "feature_decoder": _adam(1e-3),
+        "camera_opt": _adam(1e-4, 5e-7, warmup_steps=1000, lr_pre_warmup=0),
+        "bilateral_grid": _adam(2e-3, 1e-4, warmup_steps=1000, lr_pre_warmup=0),
+    },
+    viewer=ViewerConfig(num_rays_per_chunk=1 << 15),
+    vis="viewer",
+)
+
+sg_feature_splat = MethodSpecification(
+    config=sg_feature_splat_config,
+    description="Scene Grounding In the Wild reference model: splatfacto with distilled per-Gaussian features (CPU and CUDA).",
+)

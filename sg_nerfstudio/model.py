@@ -1,0 +1,327 @@
+"""Feature-augmented splatfacto: the paper's reference model ("The reference model", supplement).
+
+Every Gaussian carries a learnable feature vector (default 128-d) next to its colour. Colour and
+features are rendered in one rasterization call ([rgb | features], SH colours evaluated per view) through
+`sg_nerfstudio.render.rasterize` (gsplat on CUDA, the pure-PyTorch rasterizer on CPU). The rendered
+feature map goes through the *speedup decoder* `Conv2d(feature_dim, D_teacher, 1)` and is compared with
+the teacher map after a bilinear resize to the teacher grid:
+
+    L = L_rgb (splatfacto: (1 - l) L1 + l (1 - SSIM)) + feature_loss_weight * |F_teacher - resize(decoder(F))|_1
+
+Differences from `SplatfactoModel` besides the features: nothing calls `.cuda()`; LPIPS is built only
+when its AlexNet weights are already on disk (else skipped with one warning); densification uses plain
+means2d gradients on the CPU backend (absgrad needs gsplat's CUDA backward).
+
+Viewer outputs: rgb, depth, accumulation, decoded `features` [H, W, D_teacher] and `feature_pca`
+[H, W, 3], a projection on a PCA basis fixed at construction from teacher features and saved in the
+checkpoint, so colours are stable across views and sessions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch.nn import Parameter
+
+from gsplat.strategy import DefaultStrategy
+from nerfstudio.cameras.camera_optimizers import CameraOptimizer
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.model_components.lib_bilagrid import BilateralGrid
+from nerfstudio.models.splatfacto import (
+    RGB2SH, SplatfactoModel, SplatfactoModelConfig, num_sh_bases, random_quat_tensor,
+)
+from nerfstudio.utils.colors import get_color
+from nerfstudio.utils.rich_utils import CONSOLE
+from pytorch_msssim import SSIM
+
+from sg_nerfstudio.frames import viewmats_from_camera_to_worlds
+from sg_nerfstudio.render import rasterize, resolve_backend
+from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
+
+ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
+
+
+@dataclass
+class FeatureSplatfactoModelConfig(SplatfactoModelConfig):
+    """splatfacto plus per-Gaussian features distilled from a 2D teacher."""
+
+    _target: Type = field(default_factory=lambda: FeatureSplatfactoModel)
+    feature_dim: int = 128
+    """Length of the feature vector carried by each Gaussian."""
+    feature_loss_weight: float = 1.0
+    """Weight of the L1 feature loss against splatfacto's colour loss."""
+    rasterizer_backend: Literal["auto", "gsplat", "torch"] = "auto"
+    """auto: gsplat's CUDA kernels on CUDA, the pure-PyTorch rasterizer on CPU."""
+    densify_grad_thresh_without_absgrad: float = 0.0002
+    """Densification gradient threshold where absgrad is unavailable (CPU backend); gsplat's default for
+    plain means2d gradients, which are smaller than absgrad's."""
+
+
+class FeatureSplatfactoModel(SplatfactoModel):
+    config: FeatureSplatfactoModelConfig
+
+    def populate_modules(self):
+        self._populate_gaussians()
+        metadata = self.kwargs.get("metadata") or {}
+        teacher_dim = int(metadata.get("teacher_feature_dim", 0))
+        if teacher_dim <= 0:
+            raise ValueError("FeatureSplatfactoModel needs metadata['teacher_feature_dim'] from the FeatureDatamanager.")
+        self.teacher_feature_dim = teacher_dim
+        self.feature_decoder = torch.nn.Conv2d(self.config.feature_dim, teacher_dim, kernel_size=1)
+        self._init_pca_basis(metadata.get("teacher_feature_sample"), teacher_dim)
+
+        self.camera_optimizer: CameraOptimizer = self.config.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
+        from torchmetrics.image import PeakSignalNoiseRatio
+
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
+        self.lpips = _local_lpips()
+        self.step = 0
+        self.crop_box = None
+        if self.config.background_color == "random":
+            self.background_color = torch.tensor([0.1490, 0.1647, 0.2157])  # viser's background, as splatfacto
+        else:
+            self.background_color = get_color(self.config.background_color)
+        if self.config.use_bilateral_grid:
+            self.bil_grids = BilateralGrid(
+                num=self.num_train_data, grid_X=self.config.grid_shape[0], grid_Y=self.config.grid_shape[1], grid_W=self.config.grid_shape[2]
+            )
+        self.strategy = DefaultStrategy(
+            prune_opa=self.config.cull_alpha_thresh,
+            grow_grad2d=self.config.densify_grad_thresh,
+            grow_scale3d=self.config.densify_size_thresh,
+            grow_scale2d=self.config.split_screen_size,
+            prune_scale3d=self.config.cull_scale_thresh,
+            prune_scale2d=self.config.cull_screen_size,
+            refine_scale2d_stop_iter=self.config.stop_screen_size_at,
+            refine_start_iter=self.config.warmup_length,
+            refine_stop_iter=self.config.stop_split_at,
+            reset_every=self.config.reset_alpha_every * self.config.refine_every,
+            refine_every=self.config.refine_every,
+            pause_refine_after_reset=self.num_train_data + self.config.refine_every,
+            absgrad=self.config.use_absgrad,
+            revised_opacity=False,
+            verbose=False,
+        )
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        self._strategy_backend: Optional[str] = None
+
+    def _populate_gaussians(self) -> None:
+        """splatfacto's initialisation (SfM points or random), device-agnostic, plus zero features."""
+        if self.seed_points is not None and not self.config.random_init:
+            means = Parameter(self.seed_points[0].float())
+        else:
+            means = Parameter((torch.rand((self.config.num_random, 3)) - 0.5) * self.config.random_scale)
+        distances, _ = self.k_nearest_sklearn(means.data, 3)
+        avg_dist = torch.from_numpy(distances).mean(dim=-1, keepdim=True)
+        num_points = means.shape[0]
+        dim_sh = num_sh_bases(self.config.sh_degree)
+        if self.seed_points is not None and not self.config.random_init and self.seed_points[1].shape[0] > 0:
+            shs = torch.zeros((num_points, dim_sh, 3))
+            rgb = self.seed_points[1].float() / 255
+            shs[:, 0, :3] = RGB2SH(rgb) if self.config.sh_degree > 0 else torch.logit(rgb, eps=1e-10)
+            features_dc, features_rest = Parameter(shs[:, 0, :]), Parameter(shs[:, 1:, :])
+        else:
+            features_dc = Parameter(torch.rand(num_points, 3))
+            features_rest = Parameter(torch.zeros((num_points, dim_sh - 1, 3)))
+        self.gauss_params = torch.nn.ParameterDict({
+            "means": means,
+            "scales": Parameter(torch.log(avg_dist.repeat(1, 3))),
+            "quats": Parameter(random_quat_tensor(num_points)),
+            "features_dc": features_dc,
+            "features_rest": features_rest,
+            "opacities": Parameter(torch.logit(0.1 * torch.ones(num_points, 1))),
+            "features": Parameter(torch.zeros(num_points, self.config.feature_dim)),
+        })
+
+    def _init_pca_basis(self, sample: Optional[Tensor], dim: int) -> None:
+        """Fixed 3-component PCA of teacher features (from the datamanager's sample; loaded from the
+        checkpoint otherwise). Component signs are fixed so the largest loading is positive."""
+        mean, components = torch.zeros(dim), torch.eye(dim, 3)
+        low, high = -torch.ones(3), torch.ones(3)
+        if sample is not None and sample.shape[0] >= 3:
+            sample = sample.double()
+            mean = sample.mean(0)
+            centred = sample - mean
+            _, vectors = torch.linalg.eigh(centred.T @ centred / centred.shape[0])
+            components = vectors[:, -3:].flip(1)  # largest eigenvalue first
+            signs = torch.sign(components.gather(0, components.abs().argmax(0, keepdim=True)))
+            components = components * signs
+            projected = centred @ components
+            low, high = torch.quantile(projected, 0.01, dim=0), torch.quantile(projected, 0.99, dim=0)
+        self.register_buffer("pca_mean", mean.float())
+        self.register_buffer("pca_components", components.float())
+        self.register_buffer("pca_low", low.float())
+        self.register_buffer("pca_high", high.float())
+
+    @property
+    def features(self) -> Tensor:
+        return self.gauss_params["features"]
+
+    def get_gaussian_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = super().get_gaussian_param_groups()
+        groups["features"] = [self.gauss_params["features"]]
+        return groups
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = super().get_param_groups()
+        groups["feature_decoder"] = list(self.feature_decoder.parameters())
+        return groups
+
+    def _configure_strategy(self, backend: str) -> None:
+        """Densify on plain gradients when absgrad is unavailable (CPU backend); once per backend."""
+        if backend == self._strategy_backend:
+            return
+        self._strategy_backend = backend
+        if backend == "torch" and self.strategy.absgrad:
+            self.strategy.absgrad = False
+            self.strategy.grow_grad2d = self.config.densify_grad_thresh_without_absgrad
+            CONSOLE.print(
+                "[yellow]CPU rasterizer: densifying on means2d gradients (threshold "
+                f"{self.config.densify_grad_thresh_without_absgrad}) since absgrad needs gsplat's CUDA backward.[/yellow]"
+            )
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
+        """Render rgb, depth, accumulation and the raw feature map `feature_render` [H, W, feature_dim]."""
+        if not isinstance(camera, Cameras):
+            return {}
+        if self.training:
+            assert camera.shape[0] == 1, "Only one camera at a time"
+            camera_to_world = self.camera_optimizer.apply_to_camera(camera)
+        else:
+            camera_to_world = camera.camera_to_worlds
+        params = {name: value for name, value in self.gauss_params.items()}
+        if self.crop_box is not None and not self.training:
+            inside = self.crop_box.within(self.means).squeeze()
+            if inside.sum() == 0:
+                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+            params = {name: value[inside] for name, value in params.items()}
+
+        scale = self._get_downscale_factor()
+        camera.rescale_output_resolution(1 / scale)
+        viewmat = viewmats_from_camera_to_worlds(camera_to_world)
+        K = camera.get_intrinsics_matrices().to(self.device)
+        width, height = int(camera.width.item()), int(camera.height.item())
+        self.last_size = (height, width)
+        camera.rescale_output_resolution(scale)
+
+        backend = resolve_backend(self.config.rasterizer_backend, self.device)
+        self._configure_strategy(backend)
+        render_depth = self.config.output_depth_during_training or not self.training
+        colors = torch.cat([self._view_colors(params, camera_to_world[0, :3, 3]), params["features"]], dim=1)
+        render, alpha, self.info = rasterize(
+            means=params["means"], quats=params["quats"], scales=torch.exp(params["scales"]),
+            opacities=torch.sigmoid(params["opacities"]).squeeze(-1), colors=colors, viewmats=viewmat, Ks=K,
+            width=width, height=height, near_plane=0.01, far_plane=1e10,
+            render_mode="RGB+ED" if render_depth else "RGB", rasterize_mode=self.config.rasterize_mode,
+            absgrad=self.strategy.absgrad and backend == "gsplat", backend=backend,
+        )
+        if self.training:
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
+
+        background = self._get_background_color()
+        rgb = torch.clamp(render[..., :3] + (1 - alpha) * background, 0.0, 1.0)
+        if self.config.use_bilateral_grid and self.training and camera.metadata is not None and "cam_idx" in camera.metadata:
+            rgb = self._apply_bilateral_grid(rgb, camera.metadata["cam_idx"], height, width)
+        depth = None
+        if render_depth:
+            depth = render[..., -1:]
+            depth = torch.where(alpha > 0, depth, depth.detach().max()).squeeze(0)
+        if background.shape[0] == 3 and not self.training:
+            background = background.expand(height, width, 3)
+        return {
+            "rgb": rgb.squeeze(0),
+            "depth": depth,
+            "accumulation": alpha.squeeze(0),
+            "background": background,
+            "feature_render": render[0, ..., 3 : 3 + self.config.feature_dim],
+        }
+
+    def _view_colors(self, params: Dict[str, Tensor], camera_centre: Tensor) -> Tensor:
+        """[N, 3] colours for one view: SH up to the current degree, or sigmoid colours when sh_degree = 0."""
+        if self.config.sh_degree == 0:
+            return torch.sigmoid(params["features_dc"])
+        degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree)
+        shs = torch.cat([params["features_dc"][:, None, :], params["features_rest"]], dim=1)
+        return torch.clamp_min(evaluate_sh(degree, params["means"] - camera_centre, shs) + 0.5, 0.0)
+
+    def decode_features(self, feature_render: Tensor, size: Optional[Tuple[int, int]] = None) -> Tensor:
+        """Speedup decoder, optionally after a bilinear resize to `size` (the two commute: both linear).
+
+        Args:
+            feature_render: [H, W, feature_dim] rendered Gaussian features.
+            size: (height, width) of the output, e.g. the teacher grid; None keeps H x W.
+
+        Returns:
+            [h, w, D_teacher] decoded features.
+        """
+        maps = feature_render.permute(2, 0, 1)[None]
+        if size is not None and tuple(maps.shape[-2:]) != tuple(size):
+            maps = F.interpolate(maps, size=size, mode="bilinear", align_corners=False)
+        return self.feature_decoder(maps)[0].permute(1, 2, 0)
+
+    def feature_pca(self, features: Tensor) -> Tensor:
+        """[H, W, D_teacher] decoded features -> [H, W, 3] colours on the fixed PCA basis."""
+        projected = (features - self.pca_mean) @ self.pca_components
+        return ((projected - self.pca_low) / (self.pca_high - self.pca_low).clamp(min=1e-6)).clamp(0.0, 1.0)
+
+    def _teacher_grid_prediction(self, outputs: Dict, batch: Dict) -> Tuple[Tensor, Tensor]:
+        teacher = batch["teacher_features"].to(self.device)
+        if "features_on_teacher_grid" not in outputs:
+            outputs["features_on_teacher_grid"] = self.decode_features(outputs["feature_render"], tuple(teacher.shape[:2]))
+        return outputs["features_on_teacher_grid"], teacher
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        metrics = super().get_metrics_dict(outputs, batch)
+        if "teacher_features" in batch:
+            predicted, teacher = self._teacher_grid_prediction(outputs, batch)
+            metrics["feature_cosine"] = F.cosine_similarity(predicted.detach(), teacher, dim=-1).mean()
+        return metrics
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        losses = super().get_loss_dict(outputs, batch, metrics_dict)
+        if "teacher_features" in batch:
+            predicted, teacher = self._teacher_grid_prediction(outputs, batch)
+            losses["feature_loss"] = self.config.feature_loss_weight * torch.abs(teacher - predicted).mean()
+        return losses
+
+    @torch.no_grad()
+    def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
+        """Viewer / eval outputs: the raw feature map is replaced by decoded `features` and `feature_pca`."""
+        outputs = super().get_outputs_for_camera(camera, obb_box)
+        if "feature_render" in outputs:
+            features = self.decode_features(outputs.pop("feature_render"))
+            outputs["features"] = features
+            outputs["feature_pca"] = self.feature_pca(features)
+        return outputs
+
+    def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        gt_rgb = self.composite_with_background(self.get_gt_img(batch["image"]), outputs["background"])
+        predicted_rgb = outputs["rgb"]
+        gt, pred = torch.moveaxis(gt_rgb, -1, 0)[None], torch.moveaxis(predicted_rgb, -1, 0)[None]
+        metrics = {"psnr": float(self.psnr(gt, pred).item()), "ssim": float(self.ssim(gt, pred))}
+        if self.lpips is not None:
+            metrics["lpips"] = float(self.lpips(gt, pred))
+        images = {"img": torch.cat([gt_rgb, predicted_rgb], dim=1)}
+        if "teacher_features" in batch and "features" in outputs:
+            teacher = batch["teacher_features"].to(self.device)
+            on_grid = F.interpolate(outputs["features"].permute(2, 0, 1)[None], size=tuple(teacher.shape[:2]), mode="bilinear", align_corners=False)
+            metrics["feature_cosine"] = float(F.cosine_similarity(on_grid[0].permute(1, 2, 0), teacher, dim=-1).mean())
+            images["feature_pca"] = outputs["feature_pca"]
+        return metrics, images
+
+
+def _local_lpips():
+    """torchmetrics' LPIPS when AlexNet's weights are already in the torch-hub cache, else None (warned)."""
+    weights = Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_WEIGHTS
+    if not weights.is_file():
+        CONSOLE.print(f"[yellow]LPIPS disabled: its AlexNet weights are not at {weights} and cannot be downloaded here.[/yellow]")
+        return None
+    from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+    return LearnedPerceptualImagePatchSimilarity(normalize=True)

@@ -1,0 +1,133 @@
+"""sg-feature-splat: CPU training reduces both losses, densification keeps tensors aligned, checkpoints round-trip."""
+
+from __future__ import annotations
+
+import copy
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from nerfstudio.engine.callbacks import TrainingCallbackLocation
+from nerfstudio.utils.eval_utils import eval_setup
+
+from sg_nerfstudio.datamanager import DatasetInputError
+from sg_nerfstudio.features import TeacherConfig, TeacherInputError
+from sg_nerfstudio.method import sg_feature_splat_config
+
+
+def make_config(data: Path, output: Path, steps: int, teacher: TeacherConfig):
+    config = copy.deepcopy(sg_feature_splat_config)
+    config.machine.device_type = "cpu"
+    config.machine.seed = 0
+    config.output_dir = output
+    config.vis = "tensorboard"
+    config.max_num_iterations = steps
+    config.steps_per_eval_image = config.steps_per_eval_all_images = 100000
+    config.pipeline.datamanager.data = data
+    config.pipeline.datamanager.teacher = teacher
+    model = config.pipeline.model
+    model.warmup_length, model.refine_every, model.reset_alpha_every = 60, 60, 1000
+    model.resolution_schedule = 100
+    config.set_timestamp()
+    return config
+
+
+def train(config, steps: int):
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    history = []
+    for step in range(steps):
+        trainer.pipeline.train()
+        for callback in trainer.callbacks:
+            callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        _, loss_dict, _ = trainer.train_iteration(step)
+        for callback in trainer.callbacks:
+            callback.run_callback_at_location(step, location=TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+        history.append({name: float(value) for name, value in loss_dict.items()} | {"n": trainer.pipeline.model.num_points})
+    return trainer, history
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_scene, tmp_path_factory):
+    torch.manual_seed(0)
+    output = tmp_path_factory.mktemp("train")
+    config = make_config(tiny_scene / "reference", output, 300, TeacherConfig(name="offline", input_size=64, cache_dir=output / "cache"))
+    trainer, history = train(config, 300)
+    trainer.save_checkpoint(299)
+    config.save_config()
+    trainer.pipeline.datamanager.train_dataparser_outputs.save_dataparser_transform(trainer.base_dir / "dataparser_transforms.json")
+    return trainer, history, config
+
+
+def window_mean(history, key, start, stop):
+    return sum(h[key] for h in history[start:stop]) / (stop - start)
+
+
+def test_training_reduces_colour_and_feature_losses(trained):
+    _, history, _ = trained
+    for key in ("main_loss", "feature_loss"):
+        early, late = window_mean(history, key, 0, 20), window_mean(history, key, 280, 300)
+        assert late < 0.7 * early, f"{key}: {early:.4f} -> {late:.4f}"
+
+
+def test_densification_changes_count_and_keeps_tensors_aligned(trained):
+    trainer, history, _ = trained
+    counts = {h["n"] for h in history}
+    assert len(counts) > 1
+    model = trainer.pipeline.model
+    lengths = {name: param.shape[0] for name, param in model.gauss_params.items()}
+    assert set(lengths) >= {"means", "scales", "quats", "features_dc", "features_rest", "opacities", "features"}
+    assert len(set(lengths.values())) == 1
+    optimizers = trainer.optimizers.optimizers
+    for name, param in model.gauss_params.items():
+        state = optimizers[name].state[optimizers[name].param_groups[0]["params"][0]]
+        assert state["exp_avg"].shape == param.shape
+
+
+def test_checkpoint_round_trip_renders_identically(trained):
+    trainer, _, config = trained
+    model = trainer.pipeline.model
+    model.eval()
+    camera = trainer.pipeline.datamanager.eval_dataset.cameras[0:1]
+    before = model.get_outputs_for_camera(camera)
+    assert set(before) >= {"rgb", "depth", "accumulation", "features", "feature_pca"}
+    assert before["features"].shape[-1] == 36 and before["feature_pca"].shape[-1] == 3
+    _, pipeline, _, _ = eval_setup(config.get_base_dir() / "config.yml", test_mode="inference")
+    after = pipeline.model.get_outputs_for_camera(camera)
+    for key in ("rgb", "depth", "accumulation", "features", "feature_pca"):
+        assert torch.equal(before[key], after[key]), key
+
+
+def test_feature_pca_is_fixed_per_model(trained):
+    trainer, _, _ = trained
+    model = trainer.pipeline.model
+    model.eval()
+    cameras = trainer.pipeline.datamanager.train_dataset.cameras
+    basis = model.pca_components.clone()
+    for index in (0, 5):
+        model.get_outputs_for_camera(cameras[index : index + 1])
+    assert torch.equal(basis, model.pca_components)
+    assert not torch.allclose(basis, torch.eye(basis.shape[0], 3))  # computed from teacher features
+    # a colour depends only on the feature vector, not on the view it appears in
+    vector = torch.randn(1, 1, model.teacher_feature_dim)
+    assert torch.equal(model.feature_pca(vector), model.feature_pca(vector.clone()))
+
+
+def test_missing_images_and_unloadable_teacher_fail_early(tiny_scene, tmp_path, monkeypatch):
+    broken = tmp_path / "reference"
+    shutil.copytree(tiny_scene / "reference", broken)
+    (broken / "images" / "ring_003.png").unlink()
+    config = make_config(broken, tmp_path / "out", 1, TeacherConfig(name="offline", input_size=64, cache_dir=tmp_path / "cache"))
+    with pytest.raises(DatasetInputError, match=r"1 of the \d+ (train|eval) images .* are missing .*ring_003.png"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    config = make_config(tiny_scene / "reference", tmp_path / "out", 1, TeacherConfig(name="dinov2", input_size=112))
+    with pytest.raises(TeacherInputError, match="No DINOv2 ViT-S/14 weights found"):
+        config.pipeline.setup(device="cpu", test_mode="val")
+    config = make_config(tiny_scene / "reference", tmp_path / "out", 1, TeacherConfig(name="offline", input_size=100))
+    with pytest.raises(TeacherInputError, match="not a positive multiple"):
+        config.pipeline.setup(device="cpu", test_mode="val")

@@ -1,0 +1,163 @@
+"""Teacher features: DINOv2 architecture and weight loading, the offline descriptor, the disk cache."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+import torch
+
+from sg_nerfstudio.features import FeatureCache, TeacherConfig, TeacherInputError, build_teacher, extract_all
+from sg_nerfstudio.features.dinov2 import Dinov2Teacher, load_vits14, vits14_architecture
+
+
+@pytest.fixture(scope="module")
+def random_vits14():
+    torch.manual_seed(0)
+    return vits14_architecture()
+
+
+def smooth_image(seed: int, height: int = 60, width: int = 80) -> torch.Tensor:
+    """A structured test image in [0.1, 0.8]: blurred noise with edges (no saturation)."""
+    gen = torch.Generator().manual_seed(seed)
+    coarse = torch.rand(3, height // 10, width // 10, generator=gen)
+    image = torch.nn.functional.interpolate(coarse[None], size=(height, width), mode="nearest")[0]
+    image = image + 0.1 * torch.rand(3, height, width, generator=gen)
+    return (0.1 + 0.6 * image / image.max()).permute(1, 2, 0).contiguous()
+
+
+def test_dinov2_random_weights_shapes_grid_and_normalisation(random_vits14):
+    teacher = Dinov2Teacher(TeacherConfig(input_size=112, device="cpu"), model=random_vits14)
+    assert teacher.grid_size == 8 and teacher.feature_dim == 384
+    features = teacher.extract(smooth_image(0))
+    assert features.shape == (8, 8, 384) and features.dtype == torch.float32
+    # final LayerNorm (weight 1, bias 0 at init): every patch token has zero mean and unit variance
+    torch.testing.assert_close(features.mean(-1), torch.zeros(8, 8), atol=1e-4, rtol=0)
+    torch.testing.assert_close(features.var(-1, unbiased=False), torch.ones(8, 8), atol=1e-3, rtol=0)
+    # ImageNet normalisation happens inside: a different image gives different tokens
+    assert not torch.allclose(features, teacher.extract(smooth_image(1)))
+
+
+def torch_hub_state_dict(model) -> dict:
+    """The facebookresearch/dinov2 (torch hub) key layout of a transformers Dinov2Model, built by hand."""
+    state = model.state_dict()
+    out = {
+        "cls_token": state["embeddings.cls_token"],
+        "mask_token": state["embeddings.mask_token"],
+        "pos_embed": state["embeddings.position_embeddings"],
+        "patch_embed.proj.weight": state["embeddings.patch_embeddings.projection.weight"],
+        "patch_embed.proj.bias": state["embeddings.patch_embeddings.projection.bias"],
+        "norm.weight": state["layernorm.weight"],
+        "norm.bias": state["layernorm.bias"],
+    }
+    for i in range(12):
+        p = f"encoder.layer.{i}."
+        for kind in ("weight", "bias"):
+            out[f"blocks.{i}.attn.qkv.{kind}"] = torch.cat([state[p + f"attention.{n}_proj.{kind}"] for n in "qkv"])
+            out[f"blocks.{i}.attn.proj.{kind}"] = state[p + f"attention.o_proj.{kind}"]
+            for name in ("norm1", "norm2", "mlp.fc1", "mlp.fc2"):
+                out[f"blocks.{i}.{name}.{kind}"] = state[p + f"{name}.{kind}"]
+        out[f"blocks.{i}.ls1.gamma"] = state[p + "layer_scale1.lambda1"]
+        out[f"blocks.{i}.ls2.gamma"] = state[p + "layer_scale2.lambda1"]
+    return out
+
+
+def test_dinov2_loads_torch_hub_checkpoint_from_explicit_path_and_cache(tmp_path, monkeypatch, random_vits14):
+    with torch.no_grad():
+        for param in random_vits14.parameters():
+            param.add_(torch.randn_like(param) * 0.01)  # non-default layer norms and scales
+    checkpoint = tmp_path / "dinov2_vits14_pretrain.pth"
+    torch.save(torch_hub_state_dict(random_vits14), checkpoint)
+    image = smooth_image(2)
+    expected = Dinov2Teacher(TeacherConfig(input_size=56, device="cpu"), model=random_vits14).extract(image)
+
+    explicit = Dinov2Teacher(TeacherConfig(input_size=56, device="cpu", weights=checkpoint))
+    torch.testing.assert_close(explicit.extract(image), expected, atol=1e-5, rtol=1e-5)
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    (tmp_path / "torch" / "hub" / "checkpoints").mkdir(parents=True)
+    checkpoint.rename(tmp_path / "torch" / "hub" / "checkpoints" / checkpoint.name)
+    from_cache = Dinov2Teacher(TeacherConfig(input_size=56, device="cpu"))
+    torch.testing.assert_close(from_cache.extract(image), expected, atol=1e-5, rtol=1e-5)
+
+
+def test_dinov2_missing_weights_error_lists_every_place(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.delenv("HF_HUB_CACHE", raising=False)
+    with pytest.raises(TeacherInputError) as error:
+        load_vits14(None)
+    message = str(error.value)
+    assert str(tmp_path / "torch" / "hub" / "checkpoints" / "dinov2_vits14_pretrain.pth") in message
+    assert str(tmp_path / "hf" / "hub" / "models--facebook--dinov2-small") in message
+    assert "teacher.name offline" in message and message.count("\n") == 0
+    with pytest.raises(TeacherInputError, match="does not exist"):
+        load_vits14(tmp_path / "nowhere.pth")
+    garbage = tmp_path / "garbage.pth"
+    garbage.write_bytes(b"not a checkpoint")
+    with pytest.raises(TeacherInputError, match="Could not read DINOv2"):
+        load_vits14(garbage)
+
+
+@pytest.mark.parametrize("name,size,step", [("dinov2", 1000, 14), ("offline", 250, 8)])
+def test_grid_size_must_be_a_multiple_of_the_patch(name, size, step):
+    with pytest.raises(TeacherInputError, match=rf"not a positive multiple of .* \({step} pixels\)"):
+        build_teacher(TeacherConfig(name=name, input_size=size, weights=None))
+
+
+def test_offline_descriptor_shape_and_appearance_invariance():
+    teacher = build_teacher(TeacherConfig(name="offline", input_size=64))
+    image = smooth_image(3)
+    features = teacher.extract(image)
+    assert features.shape == (8, 8, 36)
+    changed_image = (image * 1.5 * torch.tensor([1.15, 1.0, 0.8])).clamp(0, 1) ** 0.8  # exposure, white balance, gamma
+    feature_change = ((teacher.extract(changed_image) - features).norm() / features.norm()).item()
+    rgb_change = ((changed_image - image).norm() / image.norm()).item()
+    assert rgb_change > 0.3
+    assert feature_change < 0.1 * rgb_change
+    other = teacher.extract(smooth_image(4))  # but a different scene does move it
+    assert ((other - features).norm() / features.norm()).item() > 5 * feature_change
+
+
+class CountingTeacher:
+    """Wraps a teacher and counts extractions."""
+
+    def __init__(self, inner, extra_setting=0):
+        self.inner, self.calls, self.extra = inner, 0, extra_setting
+        self.feature_dim, self.grid_size = inner.feature_dim, inner.grid_size
+
+    def settings(self):
+        return {**self.inner.settings(), "extra": self.extra}
+
+    def extract(self, image):
+        self.calls += 1
+        return self.inner.extract(image)
+
+
+def test_cache_hits_misses_and_corruption(tmp_path, capsys):
+    cache = FeatureCache(tmp_path / "cache")
+    teacher = CountingTeacher(build_teacher(TeacherConfig(name="offline", input_size=32)))
+    images = [(smooth_image(i) * 255).to(torch.uint8) for i in range(3)]
+    first = extract_all(images, 3, teacher, cache, "test")
+    assert teacher.calls == 3 and len(list((tmp_path / "cache").glob("*.pt"))) == 3
+    again = extract_all(images, 3, teacher, cache, "test")
+    assert teacher.calls == 3
+    for a, b in zip(first, again):
+        assert torch.equal(a, b)
+
+    images[1] = images[1].clone()
+    images[1][0, 0, 0] ^= 1  # one changed pixel
+    extract_all(images, 3, teacher, cache, "test")
+    assert teacher.calls == 4
+    other_settings = CountingTeacher(teacher.inner, extra_setting=1)
+    extract_all(images, 3, other_settings, cache, "test")
+    assert other_settings.calls == 3
+
+    victim = sorted((tmp_path / "cache").glob("*.pt"))[0]
+    victim.write_bytes(b"\x00garbage")
+    capsys.readouterr()
+    teacher.calls = other_settings.calls = 0
+    extract_all(images, 3, teacher, cache, "test")
+    extract_all(images, 3, other_settings, cache, "test")
+    assert teacher.calls + other_settings.calls == 1
+    assert re.search(r"Ignoring corrupt feature cache file", capsys.readouterr().out)

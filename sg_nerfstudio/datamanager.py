@@ -1,10 +1,11 @@
 """Full-image datamanager that also serves each image's cached teacher feature map.
 
-Extends nerfstudio's `FullImageDatamanager`: at start-up (training/eval, not inference) it checks that
-every image file exists, builds the teacher (failing early if it cannot load), computes or loads from
-the on-disk cache the teacher map of every cached (undistorted) image, and stores it in the image's
-cache entry, so every batch (`next_train`, `next_eval`, the eval loader) carries
-`batch["teacher_features"]` [grid, grid, D]. On a CPU device images are cached on that device rather than
+Extends nerfstudio's `FullImageDatamanager`: it checks that every image file exists, builds the teacher,
+computes or loads from the on-disk cache the teacher map of every cached (undistorted) image, and
+stores it in the image's cache entry, so every batch (`next_train`, `next_eval`, the eval loader) carries
+`batch["teacher_features"]` [grid, grid, D]. In training ("val" mode) this happens at start-up, so a
+missing image or an unloadable teacher fails early; for ns-viewer / ns-eval ("test") on the first batch
+that needs them; never for rendering ("inference"). On a CPU device images are cached on that device rather than
 in pinned memory (pinning needs CUDA).
 
 The teacher's output width and a feature sample for the model's fixed PCA colouring go to the model
@@ -55,16 +56,36 @@ class FeatureDatamanager(FullImageDatamanager):
         if torch.device(device).type == "cpu":
             self.config.cache_images = "gpu"  # i.e. "on the training device": no pinned memory without CUDA
         self.train_dataset.metadata["teacher_feature_dim"] = teacher_feature_dim(config.teacher)
-        if test_mode == "inference":
-            return  # rendering a trained model needs neither images nor teacher
+        self._features_ready = False
+        if test_mode == "val":  # training: fail early on missing images or an unloadable teacher
+            self._ensure_teacher_features()
+            self.train_dataset.metadata["teacher_feature_sample"] = self._feature_sample()
+        # "test" (ns-viewer, ns-eval) computes them on the first batch; "inference" (rendering) never
+
+    def _ensure_teacher_features(self) -> None:
+        if self._features_ready:
+            return
         self._check_images_exist()
-        self.teacher = build_teacher(config.teacher)
-        cache = FeatureCache(config.teacher.cache_dir)
+        teacher = build_teacher(self.config.teacher)
+        cache = FeatureCache(self.config.teacher.cache_dir)
         for split, cached in (("train", self.cached_train), ("eval", self.cached_eval)):
-            maps = extract_all(lambda i, c=cached: c[i]["image"], len(cached), self.teacher, cache, f"Teacher features ({split})")
+            maps = extract_all(lambda i, c=cached: c[i]["image"], len(cached), teacher, cache, f"Teacher features ({split})")
             for entry, features in zip(cached, maps):
                 entry["teacher_features"] = features
-        self.train_dataset.metadata["teacher_feature_sample"] = self._feature_sample()
+        self._features_ready = True
+
+    def next_train(self, step: int):
+        self._ensure_teacher_features()
+        return super().next_train(step)
+
+    def next_eval_image(self, step: int):
+        self._ensure_teacher_features()
+        return super().next_eval_image(step)
+
+    @property
+    def fixed_indices_eval_dataloader(self):
+        self._ensure_teacher_features()
+        return super().fixed_indices_eval_dataloader
 
     def _check_images_exist(self) -> None:
         for split, dataset in (("train", self.train_dataset), ("eval", self.eval_dataset)):

@@ -2,63 +2,16 @@
 
 from __future__ import annotations
 
-import copy
 import shutil
-from pathlib import Path
 
 import pytest
 import torch
 
-from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from nerfstudio.utils.eval_utils import eval_setup
 
 from sg_nerfstudio.datamanager import DatasetInputError
 from sg_nerfstudio.features import TeacherConfig, TeacherInputError
-from sg_nerfstudio.method import sg_feature_splat_config
-
-
-def make_config(data: Path, output: Path, steps: int, teacher: TeacherConfig):
-    config = copy.deepcopy(sg_feature_splat_config)
-    config.machine.device_type = "cpu"
-    config.machine.seed = 0
-    config.output_dir = output
-    config.vis = "tensorboard"
-    config.max_num_iterations = steps
-    config.steps_per_eval_image = config.steps_per_eval_all_images = 100000
-    config.pipeline.datamanager.data = data
-    config.pipeline.datamanager.teacher = teacher
-    model = config.pipeline.model
-    model.warmup_length, model.refine_every, model.reset_alpha_every = 60, 60, 1000
-    model.resolution_schedule = 100
-    config.set_timestamp()
-    return config
-
-
-def train(config, steps: int):
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    history = []
-    for step in range(steps):
-        trainer.pipeline.train()
-        for callback in trainer.callbacks:
-            callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        _, loss_dict, _ = trainer.train_iteration(step)
-        for callback in trainer.callbacks:
-            callback.run_callback_at_location(step, location=TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-        history.append({name: float(value) for name, value in loss_dict.items()} | {"n": trainer.pipeline.model.num_points})
-    return trainer, history
-
-
-@pytest.fixture(scope="module")
-def trained(tiny_scene, tmp_path_factory):
-    torch.manual_seed(0)
-    output = tmp_path_factory.mktemp("train")
-    config = make_config(tiny_scene / "reference", output, 300, TeacherConfig(name="offline", input_size=64, cache_dir=output / "cache"))
-    trainer, history = train(config, 300)
-    trainer.save_checkpoint(299)
-    config.save_config()
-    trainer.pipeline.datamanager.train_dataparser_outputs.save_dataparser_transform(trainer.base_dir / "dataparser_transforms.json")
-    return trainer, history, config
+from conftest import make_config
 
 
 def window_mean(history, key, start, stop):
@@ -131,3 +84,17 @@ def test_missing_images_and_unloadable_teacher_fail_early(tiny_scene, tmp_path, 
     config = make_config(tiny_scene / "reference", tmp_path / "out", 1, TeacherConfig(name="offline", input_size=100))
     with pytest.raises(TeacherInputError, match="not a positive multiple"):
         config.pipeline.setup(device="cpu", test_mode="val")
+
+
+def test_nerfstudio_render_and_export_work_on_the_checkpoint(trained, tmp_path):
+    from nerfstudio.scripts.exporter import ExportGaussianSplat
+    from nerfstudio.scripts.render import DatasetRender
+
+    _, _, config = trained
+    config_path = config.get_base_dir() / "config.yml"
+    ExportGaussianSplat(load_config=config_path, output_dir=tmp_path / "export").main()
+    ply = (tmp_path / "export" / "splat.ply").read_bytes()
+    assert ply.startswith(b"ply") and b"element vertex" in ply
+    DatasetRender(load_config=config_path, output_path=tmp_path / "renders", split="test", rendered_output_names=["rgb", "feature_pca"]).main()
+    for name in ("rgb", "feature_pca"):
+        assert len(list((tmp_path / "renders" / "test" / name).glob("*.jpg"))) >= 1

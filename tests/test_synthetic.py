@@ -134,3 +134,9 @@ def test_bad_settings_fail_with_one_sentence_and_leave_nothing(tmp_path, capsys)
     assert (existing / "keep.txt").read_text() == "user data"
     assert make_scene_main(["--preset", "nonexistent", "--output", str(tmp_path / "y")]) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["existing"]
+
+
+def test_scene_config_round_trips_through_scene_json(tiny_scene):
+    from sg_nerfstudio.synthetic.generator import read_scene_config
+
+    assert read_scene_config(tiny_scene) == replace(PRESETS["tiny"], occluder_rate=0.6)

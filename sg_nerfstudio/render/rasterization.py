@@ -124,7 +124,7 @@ def _rasterize_torch(
 ) -> tuple[Tensor, Tensor, dict]:
     """CPU backend. Culling runs without gradients on all N Gaussians; each camera then re-projects only
     its visible ones with gradients, so backward work scales with what the camera sees."""
-    n_cameras, n_gaussians = viewmats.shape[0], means.shape[0]
+    n_cameras = viewmats.shape[0]
     antialiased = rasterize_mode == "antialiased"
     projection_args = dict(width=width, height=height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane)
     with torch.no_grad():

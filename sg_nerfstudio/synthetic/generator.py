@@ -17,23 +17,20 @@ centroid is 1; errors (e.g. a registration's translation error) are stated in th
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Literal
 
 import cv2
 import numpy as np
 import pycolmap
 from rich.progress import Progress
 
+from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.synthetic.appearance import (
     apply_camera_effects, draw_occluders, flat_lighting, random_look, sun_lighting,
 )
-from sg_nerfstudio.synthetic.building import BuildingConfig, GaussianScene, build_landmark
+from sg_nerfstudio.synthetic.building import BuildingConfig, build_landmark
 from sg_nerfstudio.synthetic.capture import SIDE_AZIMUTH_DEG, Shot, meta_image_shots, reference_shots, render_shot, scene_tensors
 
 Array = np.ndarray
@@ -252,17 +249,8 @@ def generate_scene(config: SceneConfig, output: Path, overwrite: bool = False, p
     output = Path(output)
     if output.exists() and not overwrite:
         raise SceneGenerationError(f"Output directory {output} already exists; pass --overwrite to replace it.")
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
-    try:
-        manifest = _generate_into(config, staging, progress)
-        if output.exists():
-            shutil.rmtree(output)
-        os.replace(staging, output)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return manifest
+    with atomic_directory(output, overwrite=overwrite) as staging:
+        return _generate_into(config, staging, progress)
 
 
 def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -> dict:
@@ -361,6 +349,14 @@ def _generate_meta_image(spec, config, scene, geometry, ring_radius, unit, rng, 
         "n_points3D": int(recon.num_points3D()),
         "photos": [r.metadata for r in renders],
     }
+
+
+def read_scene_config(scene: Path) -> SceneConfig:
+    """The SceneConfig a scene was generated with (from its scene.json)."""
+    record = json.loads((Path(scene) / "scene.json").read_text())["config"]
+    values = {key: tuple(value) if isinstance(value, list) else value for key, value in record.items()}
+    values["building"] = BuildingConfig(**record["building"])
+    return SceneConfig(**values)
 
 
 def _jsonable(value):

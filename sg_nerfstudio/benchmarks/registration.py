@@ -1,0 +1,196 @@
+"""Registration accuracy, robustness ablations and speed on synthetic scenes (CPU, offline teacher).
+
+    python -m sg_nerfstudio.benchmarks.registration --load-config <sg-feature-splat config.yml> \\
+        --scene <sg-make-scene dir the model was trained on> [--trials 20] [--ablation-trials 4]
+
+The reference model must have been trained on `<scene>/reference` (e.g. by
+`python -m sg_nerfstudio.benchmarks.feature_splat`). Variants of the scene with the same seed share the
+reference capture exactly (the generator draws the reference first), so the benchmark builds them next to
+it without retraining:
+
+1. accuracy: `--trials` seeded starts, each the ground truth perturbed by 5°, 0.1 scene units and 10% scale
+   in random directions (about the cameras' centroid), alternating meta-images; success = ΔR < 1° and ΔT < 0.05;
+2. ablations: a variant whose meta-images have 30% heavily occluded photos (occluders over 40-60% of the
+   frame) and strong appearance change; rows full, photometric, l2, none, fixed-lts, irls; columns ΔR, ΔT,
+   MTA, O% over `--ablation-trials` starts per meta-image;
+3. speed: a 20-photo meta-image against the model pruned to its 20k most opaque Gaussians, fast preset:
+   wall time, steps per second, and the split between render, loss and backward.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+from sg_nerfstudio.registration.meta_image import MetaImage, load_meta_image
+from sg_nerfstudio.registration.metrics import pose_errors
+from sg_nerfstudio.registration.optimize import RegistrationSettings, prepare_photos, register
+from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
+from sg_nerfstudio.registration.sim3 import about_point, perturbation
+from sg_nerfstudio.scripts.register_meta import load_settings_preset
+from sg_nerfstudio.synthetic import generate_scene
+from sg_nerfstudio.synthetic.generator import read_scene_config
+
+ABLATIONS = {
+    "full": {},
+    "photometric": {"objective": "photometric"},
+    "l2": {"loss": "l2"},
+    "none": {"robust": "none"},
+    "fixed-lts": {"robust": "fixed-lts"},
+    "irls": {"robust": "irls"},
+}
+
+
+@dataclass
+class Args:
+    load_config: Path
+    scene: Path
+    """The sg-make-scene directory whose reference capture the model was trained on."""
+    preset: Path = Path("configs/register/fast-cpu.yaml")
+    trials: int = 20
+    ablation_trials: int = 4
+    """Starts per meta-image and ablation row."""
+    skip: tuple[str, ...] = ()
+    """Parts to skip: accuracy, ablations, speed."""
+    output: Path = Path("benchmark_registration.json")
+    threads: int = 2
+
+
+def scene_variant(scene: Path, name: str, **changes) -> Path:
+    """The scene regenerated with the same seed and reference capture but other meta-image settings."""
+    config = read_scene_config(scene)
+    target = scene.parent / f"{scene.name}-{name}"
+    if not target.exists():
+        generate_scene(replace(config, **changes), target)
+    return target
+
+
+def trial(reference: ReferenceModel, meta: MetaImage, truth: np.ndarray, seed: int, settings: RegistrationSettings, photos=None) -> dict:
+    noise = perturbation(np.random.default_rng(seed), 5.0, 0.1, 0.1)
+    start = about_point(noise, meta.centroid_under(truth)) @ truth
+    result = register(reference, meta, start, replace(settings, seed=seed), photos=photos)
+    poses = [p.cam_from_world for p in meta.photos]
+    before, after = pose_errors(poses, start, truth), pose_errors(poses, result.transform, truth)
+    return {
+        "meta": meta.name, "seed": seed, "dR_before": before.rotation_deg, "dT_before": before.translation,
+        "dR": after.rotation_deg, "dT": after.translation, "accurate": after.accurate(), "outlier": after.outlier(),
+        "time_s": result.wall_time_s, "timings": result.timings, "steps": result.steps,
+    }
+
+
+def load_metas(scene: Path) -> list[tuple[MetaImage, np.ndarray]]:
+    metas = []
+    for directory in sorted((scene / "meta").iterdir()):
+        truth = np.array(json.loads((directory / "gt_transform.json").read_text())["matrix"])
+        metas.append((load_meta_image(directory), truth))
+    return metas
+
+
+def accuracy(reference, scene, settings, trials, console) -> dict:
+    metas = load_metas(scene)
+    cache = {}
+    rows = []
+    for seed in range(trials):
+        meta, truth = metas[seed % len(metas)]
+        if meta.name not in cache:
+            cache[meta.name] = prepare_photos(reference, meta, settings)
+        rows.append(trial(reference, meta, truth, seed, settings, cache[meta.name]))
+        r = rows[-1]
+        console.print(f"trial {seed} ({r['meta']}): ΔR {r['dR_before']:.2f}° -> {r['dR']:.3f}°, ΔT {r['dT_before']:.3f} -> {r['dT']:.4f}, {r['time_s']:.1f} s")
+    success = [r["dR"] < 1.0 and r["dT"] < 0.05 for r in rows]
+    table = Table(title=f"Accuracy: {trials} starts at 5° / 0.1 / 10% (fast preset)")
+    for column in ("trials", "success (ΔR<1°, ΔT<0.05)", "median ΔR after", "median ΔT after", "worst ΔR", "worst ΔT", "mean time (s)"):
+        table.add_column(column, justify="right")
+    table.add_row(
+        str(trials), f"{sum(success)}/{trials} ({100 * sum(success) / trials:.0f}%)",
+        f"{statistics.median(r['dR'] for r in rows):.3f}", f"{statistics.median(r['dT'] for r in rows):.4f}",
+        f"{max(r['dR'] for r in rows):.3f}", f"{max(r['dT'] for r in rows):.4f}", f"{statistics.mean(r['time_s'] for r in rows):.1f}",
+    )
+    console.print(table)
+    return {"rows": rows, "success_rate": sum(success) / trials}
+
+
+def ablations(reference, scene, settings, trials, console) -> dict:
+    metas = load_metas(scene)
+    table = Table(title=f"Ablations on {scene.name} ({trials} starts per meta-image, 30% heavily occluded photos)")
+    for column in ("method", "ΔR (°)", "ΔT", "MTA (%)", "O (%)", "runs"):
+        table.add_column(column, justify="right")
+    results = {}
+    for name, change in ABLATIONS.items():
+        variant = replace(settings, **change)
+        rows = []
+        for meta, truth in metas:
+            photos = prepare_photos(reference, meta, variant)
+            rows += [trial(reference, meta, truth, seed, variant, photos) for seed in range(100, 100 + trials)]
+        results[name] = rows
+        table.add_row(
+            name, f"{statistics.mean(r['dR'] for r in rows):.3f}", f"{statistics.mean(r['dT'] for r in rows):.4f}",
+            f"{100 * statistics.mean(r['accurate'] for r in rows):.0f}", f"{100 * statistics.mean(r['outlier'] for r in rows):.0f}", str(len(rows)),
+        )
+        console.print(f"{name}: mean ΔR {statistics.mean(r['dR'] for r in rows):.3f}°, mean ΔT {statistics.mean(r['dT'] for r in rows):.4f}")
+    console.print(table)
+    return results
+
+
+def speed(reference: ReferenceModel, scene: Path, settings: RegistrationSettings, console) -> dict:
+    pruned = prune(reference, 20_000)
+    meta, truth = load_metas(scene)[0]
+    photos = prepare_photos(pruned, meta, settings)
+    start = time.perf_counter()
+    row = trial(pruned, meta, truth, 0, settings, photos)
+    total = time.perf_counter() - start
+    timings = row["timings"]
+    table = Table(title=f"Speed: {len(meta.photos)}-photo meta-image, {pruned.means.shape[0]} Gaussians, fast preset")
+    for column in ("wall time (s)", "steps/s", "render (s)", "loss (s)", "backward (s)", "other (s)", "goal"):
+        table.add_column(column, justify="right")
+    other = row["time_s"] - sum(timings.values())
+    table.add_row(
+        f"{total:.1f}", f"{row['steps'] / row['time_s']:.2f}", f"{timings['render']:.1f}", f"{timings['loss']:.1f}",
+        f"{timings['backward']:.1f}", f"{other:.1f}", "<= 60 s " + ("met" if total <= 60 else "MISSED"),
+    )
+    console.print(table)
+    return {"wall_time_s": total, **row}
+
+
+def prune(reference: ReferenceModel, count: int) -> ReferenceModel:
+    """The reference model restricted to its `count` most opaque Gaussians (for a fixed-size speed test)."""
+    if reference.means.shape[0] <= count:
+        return reference
+    keep = torch.argsort(reference.opacities, descending=True)[:count]
+    return replace(
+        reference, means=reference.means[keep], quats=reference.quats[keep], scales=reference.scales[keep],
+        opacities=reference.opacities[keep], render_features=reference.render_features[keep], colors=reference.colors[keep],
+    )
+
+
+def main(args: Args) -> None:
+    torch.set_num_threads(args.threads)
+    console = Console(width=140)
+    settings = load_settings_preset(args.preset)
+    reference = load_reference(args.load_config)
+    console.print(f"Reference model: {reference.means.shape[0]} Gaussians from {args.load_config}")
+    report = {"settings": dataclasses.asdict(settings), "gaussians": int(reference.means.shape[0])}
+    if "accuracy" not in args.skip:
+        report["accuracy"] = accuracy(reference, args.scene, settings, args.trials, console)
+    if "ablations" not in args.skip:
+        heavy = scene_variant(args.scene, "occluded", occluder_rate=0.3, occluder_coverage=(0.4, 0.6), appearance_strength=1.0)
+        report["ablations"] = ablations(reference, heavy, settings, args.ablation_trials, console)
+    if "speed" not in args.skip:
+        twenty = scene_variant(args.scene, "front20", meta_images=("front:20",))
+        report["speed"] = speed(reference, twenty, settings, console)
+    args.output.write_text(json.dumps(report, indent=2, default=float))
+    console.print(f"Raw results: {args.output}")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,171 @@
+"""A meta-image: photos plus the COLMAP model that bundles them, read with pycolmap and validated.
+
+Layout: `<dir>/images/<name>` and a COLMAP model in `<dir>/sparse/0/` or `<dir>/sparse/`. Each photo is
+undistorted to a pinhole image with the same focal length and principal point (any COLMAP camera
+model: pixels are mapped through pycolmap's `cam_from_img` / `img_from_cam`), so the reference model can
+be rendered with a pinhole camera and compared with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+from PIL import Image as PILImage
+
+from sg_nerfstudio.errors import InputError
+
+Array = np.ndarray
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"}
+
+
+class MetaImageError(InputError):
+    """A meta-image directory that cannot be registered."""
+
+
+@dataclass
+class Photo:
+    """One registered photo of a meta-image.
+
+    Attributes:
+        name: image name as in the COLMAP model.
+        path: image file.
+        camera: its pycolmap camera (any model, pixel convention: centre of the top-left pixel at 0.5).
+        cam_from_world: [3, 4] world-to-camera (OpenCV) in the meta-image frame.
+        point_depths: [M] depths (camera z, meta units) of the sparse points it observes.
+    """
+
+    name: str
+    path: Path
+    camera: pycolmap.Camera
+    cam_from_world: Array
+    point_depths: Array
+
+    @property
+    def centre(self) -> Array:
+        return -self.cam_from_world[:, :3].T @ self.cam_from_world[:, 3]
+
+    def pinhole_intrinsics(self) -> Array:
+        """[3, 3] K of the undistorted image (same focal lengths and principal point)."""
+        fx, fy, cx, cy = _focal_and_centre(self.camera)
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def load_undistorted(self) -> Array:
+        """[H, W, 3] uint8 RGB, undistorted to `pinhole_intrinsics()`; raises MetaImageError if unreadable."""
+        bgr = cv2.imread(str(self.path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise MetaImageError(f"Photo {self.path} could not be read as an image.")
+        height, width = bgr.shape[:2]
+        if (width, height) != (self.camera.width, self.camera.height):
+            raise MetaImageError(
+                f"Photo {self.path} is {width}x{height} pixels but its COLMAP camera says "
+                f"{self.camera.width}x{self.camera.height}; expected the size the model was built from."
+            )
+        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        if self.camera.model.name in ("SIMPLE_PINHOLE", "PINHOLE"):
+            return rgb
+        K = self.pinhole_intrinsics()
+        us, vs = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+        rays = np.stack([(us.ravel() - K[0, 2]) / K[0, 0], (vs.ravel() - K[1, 2]) / K[1, 1], np.ones(us.size)], axis=1)
+        distorted = self.camera.img_from_cam(rays)
+        map_x = (distorted[:, 0] - 0.5).reshape(height, width).astype(np.float32)
+        map_y = (distorted[:, 1] - 0.5).reshape(height, width).astype(np.float32)
+        return cv2.remap(rgb, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+@dataclass
+class MetaImage:
+    name: str
+    directory: Path
+    model_path: Path
+    photos: list[Photo]
+    reconstruction: pycolmap.Reconstruction
+    unlisted: list[str]
+    """Image files in images/ that the model does not list (reported, not used)."""
+
+    @property
+    def centres(self) -> Array:
+        """[P, 3] camera centres in the meta frame."""
+        return np.stack([p.centre for p in self.photos])
+
+    def centroid_under(self, transform: Array) -> Array:
+        """[3] centroid of the camera centres moved by the Sim(3) `transform` [4, 4]."""
+        return self.centres.mean(0) @ transform[:3, :3].T + transform[:3, 3]
+
+
+def _focal_and_centre(camera: pycolmap.Camera) -> tuple[float, float, float, float]:
+    return (
+        float(camera.focal_length_x), float(camera.focal_length_y),
+        float(camera.principal_point_x), float(camera.principal_point_y),
+    )
+
+
+def find_model(directory: Path) -> Path:
+    for candidate in (directory / "sparse" / "0", directory / "sparse"):
+        if (candidate / "images.bin").exists() or (candidate / "images.txt").exists():
+            return candidate
+    raise MetaImageError(
+        f"No COLMAP model in {directory}: expected {directory / 'sparse' / '0'} or {directory / 'sparse'} "
+        "holding cameras/images/points3D (.bin or .txt)."
+    )
+
+
+def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
+    """Read and validate a meta-image; every problem is one MetaImageError sentence."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise MetaImageError(f"Meta-image directory {directory} does not exist.")
+    model_path = find_model(directory)
+    try:
+        reconstruction = pycolmap.Reconstruction(str(model_path))
+    except Exception as error:
+        raise MetaImageError(f"COLMAP model {model_path} could not be read ({error}); expected a valid model.") from None
+    images_dir = directory / "images"
+    if not images_dir.is_dir():
+        raise MetaImageError(f"Meta-image {directory} has no images/ folder next to its COLMAP model.")
+
+    listed = {image.name for image in reconstruction.images.values()}
+    on_disk = {str(p.relative_to(images_dir)) for p in images_dir.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES}
+    missing = sorted(listed - on_disk)
+    if missing:
+        raise MetaImageError(
+            f"{len(missing)} photos listed by {model_path} are missing from {images_dir}: {', '.join(missing[:5])}"
+            + (" ..." if len(missing) > 5 else "") + "."
+        )
+    extra = sorted(on_disk - listed)
+
+    photos = []
+    for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
+        if not image.has_pose:
+            continue
+        camera = reconstruction.cameras[image.camera_id]
+        if not camera.is_perspective:
+            raise MetaImageError(f"Photo {image.name} uses camera model {camera.model.name}; expected a perspective model.")
+        pose = image.cam_from_world().matrix()
+        depths = np.array([
+            (pose[:, :3] @ reconstruction.points3D[p.point3D_id].xyz + pose[:, 3])[2]
+            for p in image.points2D if p.has_point3D()
+        ])
+        _check_size(images_dir / image.name, camera)
+        photos.append(Photo(image.name, images_dir / image.name, camera, pose, depths))
+    if len(photos) < min_photos:
+        raise MetaImageError(
+            f"Meta-image {directory} has {len(photos)} registered photos; at least {min_photos} are needed."
+        )
+    return MetaImage(directory.name, directory, model_path, photos, reconstruction, extra)
+
+
+def _check_size(path: Path, camera: pycolmap.Camera) -> None:
+    try:
+        with PILImage.open(path) as handle:
+            width, height = handle.size
+    except Exception as error:
+        raise MetaImageError(f"Photo {path} could not be read as an image ({error}).") from None
+    if (width, height) != (camera.width, camera.height):
+        raise MetaImageError(
+            f"Photo {path} is {width}x{height} pixels but its COLMAP camera says {camera.width}x{camera.height}; "
+            "expected the size the model was built from."
+        )

@@ -1,0 +1,266 @@
+"""The registration loop: optimise one Sim(3) of a whole meta-image against the frozen reference model.
+
+Per step: transform the photos' cameras by T = U(delta) o T0 (dataparser frame), render the reference
+model's decoded features (or colours) from them, resize to the teacher grid, compare with the photos'
+teacher maps (L1 or L2 per image), aggregate robustly (LTS by default), and take an Adam step on the 7
+parameters delta. Everything the caller passes in and gets back is in the reference *world* frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, replace
+from typing import Callable, Literal, Optional
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.features import FeatureCache, build_teacher, extract_all
+from sg_nerfstudio.registration.meta_image import MetaImage
+from sg_nerfstudio.registration.reference import ReferenceModel, resize_to
+from sg_nerfstudio.registration.robust import LossKind, Robust, RobustAggregator, per_image_loss
+from sg_nerfstudio.registration.sim3 import decompose, invert, update_matrix
+
+Array = np.ndarray
+
+
+class InitialisationError(InputError):
+    """A start the optimisation cannot begin from."""
+
+
+@dataclass
+class RegistrationSettings:
+    """How one meta-image is registered (defaults: the paper's settings)."""
+
+    steps: int = 12000
+    """Optimisation steps (paper: 12000)."""
+    lr: float = 1e-3
+    """Adam learning rate on delta = (omega, nu, log s) (paper: 1e-3)."""
+    lr_final: Optional[float] = None
+    """Exponential decay of the learning rate to this value at the last step; None keeps it constant (paper)."""
+    adam_eps: float = 1e-8
+    objective: Literal["features", "photometric"] = "features"
+    """Match decoded features against the photos' teacher maps (paper) or colours against the photos."""
+    loss: LossKind = "l1"
+    robust: Robust = "lts"
+    """lts (paper), fixed-lts, irls or none."""
+    lts_percentile: float = 50.0
+    """Images with a loss above this percentile of the previous iteration's losses are ignored (50 = median)."""
+    images_per_step: int = 0
+    """Photos rendered per step; 0 = all of them (paper)."""
+    teacher_input_size: Optional[int] = None
+    """Teacher input size for the photos; default: the one the reference model was trained with."""
+    render_size: int = 0
+    """Long side of the renders in pixels; 0 = twice the teacher grid."""
+    near_plane: float = 0.7
+    """Near plane in dataparser units against floaters (paper: 0.7); lowered automatically to half the
+    nearest sparse-point depth of the meta-image so it never cuts away what the photos see."""
+    seed: int = 0
+    backend: Literal["auto", "gsplat", "torch"] = "auto"
+
+
+@dataclass
+class PreparedPhoto:
+    name: str
+    cam_from_meta: Tensor  # [3, 4] float64
+    K: Tensor  # [3, 3] float32, at render size
+    width: int
+    height: int
+    target: Tensor  # [G, G, D] teacher map or RGB on the teacher grid
+
+
+@dataclass
+class RegistrationResult:
+    transform: Array  # [4, 4] meta -> reference world
+    initial_transform: Array
+    final_losses: Array  # [P] per photo at the final transform
+    initial_losses: Array
+    final_trimmed_loss: float
+    history: list[dict]  # per step and photo: step, image, loss, kept, weight
+    ignored_fraction: Array  # [P] fraction of its evaluations in which each photo was ignored
+    steps: int
+    wall_time_s: float
+    timings: dict
+    near_plane: float
+    settings: dict
+    photo_names: list[str]
+    coverage: Array  # [P] fraction of rendered pixels covered by the model at the initial transform
+
+
+def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings) -> list[PreparedPhoto]:
+    """Undistort each photo, compute (or load cached) teacher maps, and set up its render camera."""
+    teacher_config = replace(reference.teacher, input_size=settings.teacher_input_size or reference.teacher.input_size)
+    teacher = build_teacher(teacher_config)
+    images = [None] * len(meta.photos)
+
+    def load(index: int) -> Tensor:
+        if images[index] is None:
+            images[index] = torch.from_numpy(meta.photos[index].load_undistorted())
+        return images[index]
+
+    grid = teacher.grid_size
+    if settings.objective == "features":
+        targets = extract_all(load, len(meta.photos), teacher, FeatureCache(teacher_config.cache_dir), f"Teacher features ({meta.name})")
+    else:
+        targets = [
+            F.interpolate(load(i).permute(2, 0, 1)[None].float() / 255.0, size=(grid, grid), mode="area")[0].permute(1, 2, 0)
+            for i in range(len(meta.photos))
+        ]
+    long_side = settings.render_size or 2 * grid
+    prepared = []
+    for photo, target in zip(meta.photos, targets):
+        width, height = photo.camera.width, photo.camera.height
+        factor = long_side / max(width, height)
+        render_w, render_h = max(8, round(width * factor)), max(8, round(height * factor))
+        K = photo.pinhole_intrinsics().copy()
+        K[0] *= render_w / width
+        K[1] *= render_h / height
+        prepared.append(PreparedPhoto(
+            photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(K).float(), render_w, render_h, target.float(),
+        ))
+    return prepared
+
+
+def camera_viewmat(cam_from_meta: Tensor, linear: Tensor, translation: Tensor, scale: Tensor) -> Tensor:
+    """World-to-camera [4, 4] (float32) of a meta camera moved by the similarity x -> linear x + translation.
+
+    Args:
+        cam_from_meta: [3, 4] OpenCV world-to-camera in the meta frame (float64).
+        linear: [3, 3] = scale * R, translation: [3], scale: [] (float64, differentiable).
+    """
+    rotation_cw = cam_from_meta[:, :3]
+    centre = -rotation_cw.T @ cam_from_meta[:, 3]
+    new_centre = linear @ centre + translation
+    new_rotation_cw = rotation_cw @ (linear / scale).T
+    top = torch.cat([new_rotation_cw, (-new_rotation_cw @ new_centre)[:, None]], dim=1)
+    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=top.dtype)
+    return torch.cat([top, bottom], dim=0).float()
+
+
+class Objective:
+    """Per-photo loss of the frozen reference model under a meta -> dataparser similarity."""
+
+    def __init__(self, reference: ReferenceModel, photos: list[PreparedPhoto], settings: RegistrationSettings, near_plane: float):
+        self.reference, self.photos, self.settings, self.near_plane = reference, photos, settings, near_plane
+        self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
+
+    def __call__(self, matrix: Tensor, scale: Tensor, indices) -> tuple[Tensor, Tensor]:
+        """[B] losses and [B] covered fractions of the photos `indices` under `matrix` [4, 4] (float64)."""
+        losses, coverage = [], []
+        for index in indices:
+            photo = self.photos[index]
+            start = time.perf_counter()
+            viewmat = camera_viewmat(photo.cam_from_meta, matrix[:3, :3], matrix[:3, 3], scale)
+            rendered, alpha = self.reference.render(
+                viewmat[None], photo.K[None], photo.width, photo.height, self.near_plane, self.settings.objective, self.settings.backend
+            )
+            middle = time.perf_counter()
+            on_grid = resize_to(rendered, tuple(photo.target.shape[:2]))
+            losses.append(per_image_loss(on_grid, photo.target[None], self.settings.loss)[0])
+            coverage.append(alpha.detach().mean())
+            self.timings["render"] += middle - start
+            self.timings["loss"] += time.perf_counter() - middle
+        return torch.stack(losses), torch.stack(coverage)
+
+
+def effective_near_plane(meta: MetaImage, initial_ns: Array, requested: float) -> float:
+    """min(requested, half the 5th-percentile depth of the sparse points seen by the photos, in dataparser units)."""
+    depths = np.concatenate([p.point_depths for p in meta.photos]) if meta.photos else np.zeros(0)
+    depths = depths[depths > 0]
+    if len(depths) == 0:
+        return requested
+    scale, _, _ = decompose(initial_ns)
+    return float(min(requested, 0.5 * scale * np.percentile(depths, 5)))
+
+
+def register(
+    reference: ReferenceModel,
+    meta: MetaImage,
+    initial_world: Array,
+    settings: RegistrationSettings,
+    photos: Optional[list[PreparedPhoto]] = None,
+    on_step: Optional[Callable[[int], None]] = None,
+) -> RegistrationResult:
+    """Estimate the Sim(3) meta -> reference world starting from `initial_world` [4, 4]."""
+    started = time.perf_counter()
+    photos = photos if photos is not None else prepare_photos(reference, meta, settings)
+    world_to_ns = reference.world_to_dataparser
+    initial_ns = world_to_ns @ initial_world
+    near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
+    objective = Objective(reference, photos, settings, near_plane)
+    scale0, _, _ = decompose(initial_ns)
+    t0 = torch.from_numpy(initial_ns)
+    centre = torch.from_numpy(meta.centroid_under(initial_ns))
+    all_indices = list(range(len(photos)))
+
+    with torch.no_grad():
+        initial_losses, coverage = objective(t0, torch.tensor(scale0, dtype=torch.float64), all_indices)
+    if float(coverage.max()) < 1e-3:
+        raise InitialisationError(
+            f"From the initial transform the reference model renders nothing for any photo of meta-image '{meta.name}' "
+            "(every camera sees empty space); expected a start near the answer (see --init)."
+        )
+    aggregator = RobustAggregator(settings.robust, settings.lts_percentile, initial_losses.double().numpy())
+
+    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
+    optimizer = torch.optim.Adam([delta], lr=settings.lr, eps=settings.adam_eps)
+    gamma = (settings.lr_final / settings.lr) ** (1.0 / max(settings.steps, 1)) if settings.lr_final else 1.0
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
+    rng = np.random.default_rng(settings.seed)
+    batch_size = settings.images_per_step or len(photos)
+    queue: list[int] = []
+    history: list[dict] = []
+    ignored = np.zeros(len(photos))
+    evaluated = np.zeros(len(photos))
+    for step in range(settings.steps):
+        if batch_size >= len(photos):
+            batch = all_indices
+        else:
+            while len(queue) < batch_size:
+                queue.extend(rng.permutation(len(photos)).tolist())
+            batch, queue = queue[:batch_size], queue[batch_size:]
+        update = update_matrix(delta, centre)
+        matrix = update @ t0
+        scale = torch.exp(delta[6]) * scale0
+        losses, _ = objective(matrix, scale, batch)
+        value, kept, weights = aggregator(losses, np.asarray(batch))
+        start = time.perf_counter()
+        optimizer.zero_grad()
+        value.backward()
+        optimizer.step()
+        scheduler.step()
+        objective.timings["backward"] += time.perf_counter() - start
+        if not torch.isfinite(delta).all():
+            raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step}.")
+        for index, loss, keep, weight in zip(batch, losses.detach().tolist(), kept, weights):
+            history.append({"step": step, "image": photos[index].name, "loss": loss, "kept": bool(keep), "weight": float(weight)})
+            ignored[index] += not keep
+            evaluated[index] += 1
+        if on_step is not None:
+            on_step(step)
+
+    with torch.no_grad():
+        final_ns = (update_matrix(delta, centre) @ t0).numpy()
+        final_scale = torch.tensor(decompose(final_ns)[0], dtype=torch.float64)
+        final_losses, _ = objective(torch.from_numpy(final_ns), final_scale, all_indices)
+    final_losses = final_losses.double().numpy()
+    trimmed = final_losses[final_losses <= np.percentile(final_losses, settings.lts_percentile)] if settings.robust != "none" else final_losses
+    return RegistrationResult(
+        transform=invert(world_to_ns) @ final_ns,
+        initial_transform=np.asarray(initial_world, dtype=np.float64),
+        final_losses=final_losses,
+        initial_losses=initial_losses.double().numpy(),
+        final_trimmed_loss=float(trimmed.mean()),
+        history=history,
+        ignored_fraction=ignored / np.maximum(evaluated, 1),
+        steps=settings.steps,
+        wall_time_s=time.perf_counter() - started,
+        timings=dict(objective.timings),
+        near_plane=near_plane,
+        settings=asdict(settings),
+        photo_names=[p.name for p in photos],
+        coverage=coverage.double().numpy(),
+    )

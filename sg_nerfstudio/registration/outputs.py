@@ -1,0 +1,171 @@
+"""Everything ns-register-meta writes for one meta-image, into a directory that appears atomically.
+
+    transform.json   Sim(3) meta -> reference world (matrix, scale, quaternion, translation), the initial
+                     transform, final trimmed loss, steps, wall time, settings
+    aligned/         the meta-image's COLMAP model moved into the reference world frame
+    losses.csv       per step and photo: loss, whether LTS kept it, its weight
+    report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (top half: reference model
+                     rendered at the photo's pose, bottom half: the photo; before and after)
+    metrics.json     with --gt: ΔR, ΔT, accurate/outlier before and after
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pycolmap  # noqa: E402
+import torch  # noqa: E402
+
+from sg_nerfstudio.atomic import atomic_directory  # noqa: E402
+from sg_nerfstudio.registration.meta_image import MetaImage  # noqa: E402
+from sg_nerfstudio.registration.metrics import PoseErrors  # noqa: E402
+from sg_nerfstudio.registration.optimize import RegistrationResult, camera_viewmat  # noqa: E402
+from sg_nerfstudio.registration.reference import ReferenceModel  # noqa: E402
+from sg_nerfstudio.registration.sim3 import decompose, quaternion_wxyz  # noqa: E402
+
+Array = np.ndarray
+COMPARISON_LONG_SIDE = 320
+
+
+def transform_record(matrix: Array) -> dict:
+    scale, rotation, translation = decompose(matrix)
+    return {
+        "convention": "x_reference = scale * R @ x_meta + translation",
+        "matrix": np.asarray(matrix).tolist(),
+        "scale": scale,
+        "rotation_wxyz": quaternion_wxyz(rotation),
+        "translation": translation.tolist(),
+    }
+
+
+def write_outputs(
+    target: Path,
+    reference: ReferenceModel,
+    meta: MetaImage,
+    result: RegistrationResult,
+    errors: Optional[dict[str, PoseErrors]] = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write all outputs into `target` (created atomically via a temporary sibling)."""
+    with atomic_directory(target, overwrite=overwrite) as staging:
+        _write_transform(staging, reference, meta, result)
+        _write_aligned_model(staging / "aligned", meta, result.transform)
+        _write_losses(staging / "losses.csv", result)
+        report = staging / "report"
+        report.mkdir()
+        _plot_losses(report / "loss_curve.png", result)
+        _plot_ignored(report / "ignored_histogram.png", result)
+        _write_comparisons(report / "comparisons", reference, meta, result)
+        if errors is not None:
+            (staging / "metrics.json").write_text(json.dumps({k: v.as_dict() for k, v in errors.items()}, indent=2))
+    return target
+
+
+def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage, result: RegistrationResult) -> None:
+    record = transform_record(result.transform)
+    record.update({
+        "initial": transform_record(result.initial_transform),
+        "meta_image": str(meta.directory),
+        "reference_config": str(reference.config_path),
+        "reference_checkpoint": str(reference.checkpoint_path),
+        "final_trimmed_loss": result.final_trimmed_loss,
+        "steps": result.steps,
+        "wall_time_s": round(result.wall_time_s, 3),
+        "time_split_s": {k: round(v, 3) for k, v in result.timings.items()},
+        "effective_near_plane": result.near_plane,
+        "settings": result.settings,
+        "photos": [
+            {"name": n, "initial_loss": float(a), "final_loss": float(b), "ignored_fraction": float(c), "initial_coverage": float(d)}
+            for n, a, b, c, d in zip(result.photo_names, result.initial_losses, result.final_losses, result.ignored_fraction, result.coverage)
+        ],
+    })
+    (directory / "transform.json").write_text(json.dumps(record, indent=2))
+
+
+def _write_aligned_model(directory: Path, meta: MetaImage, transform: Array) -> None:
+    reconstruction = pycolmap.Reconstruction(meta.reconstruction)
+    scale, rotation, translation = decompose(transform)
+    reconstruction.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
+    directory.mkdir()
+    reconstruction.write_binary(str(directory))
+
+
+def _write_losses(path: Path, result: RegistrationResult) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["step", "image", "loss", "kept", "weight"])
+        writer.writeheader()
+        writer.writerows(result.history)
+
+
+def _plot_losses(path: Path, result: RegistrationResult) -> None:
+    steps = np.array([row["step"] for row in result.history])
+    losses = np.array([row["loss"] for row in result.history])
+    kept = np.array([row["kept"] for row in result.history])
+    all_mean = np.bincount(steps, weights=losses) / np.maximum(np.bincount(steps), 1)
+    kept_mean = np.bincount(steps, weights=losses * kept) / np.maximum(np.bincount(steps, weights=kept.astype(float)), 1)
+    figure, axis = plt.subplots(figsize=(6, 3.5))
+    axis.plot(all_mean, label="all photos in the step", alpha=0.6)
+    axis.plot(kept_mean, label="kept by the robust loss")
+    axis.set_xlabel("step")
+    axis.set_ylabel(f"{result.settings['loss']} {result.settings['objective']} loss")
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def _plot_ignored(path: Path, result: RegistrationResult) -> None:
+    figure, axis = plt.subplots(figsize=(6, 3.5))
+    axis.hist(result.ignored_fraction, bins=np.linspace(0, 1, 11), edgecolor="black")
+    axis.set_xlabel("fraction of steps in which the photo was ignored")
+    axis.set_ylabel("photos")
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def render_rgb_at_photo(reference: ReferenceModel, cam_from_meta: Array, K: Array, width: int, height: int, transform_world: Array, near_plane: float) -> Array:
+    """[H, W, 3] uint8 colour render of the reference model from a meta camera moved by `transform_world`."""
+    matrix = torch.from_numpy(reference.world_to_dataparser @ transform_world)
+    scale = torch.tensor(decompose(matrix.numpy())[0], dtype=torch.float64)
+    viewmat = camera_viewmat(torch.from_numpy(cam_from_meta), matrix[:3, :3], matrix[:3, 3], scale)
+    with torch.no_grad():
+        rgb, _ = reference.render(viewmat[None], torch.from_numpy(K).float()[None], width, height, near_plane, "photometric")
+    return (rgb[0].numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def _write_comparisons(directory: Path, reference: ReferenceModel, meta: MetaImage, result: RegistrationResult, count: int = 4) -> None:
+    """For the photos with the lowest and highest final loss: [before | after], each with the model's render
+    in the top half and the photo in the bottom half (the paper's figures)."""
+    directory.mkdir()
+    order = np.argsort(result.final_losses)
+    chosen = list(dict.fromkeys([*order[: count // 2], *order[::-1][: count - count // 2]]))
+    for index in chosen:
+        photo = meta.photos[int(index)]
+        image = photo.load_undistorted()
+        factor = COMPARISON_LONG_SIDE / max(image.shape[:2])
+        width, height = round(image.shape[1] * factor), round(image.shape[0] * factor)
+        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+        K = photo.pinhole_intrinsics()
+        K[0] *= width / photo.camera.width
+        K[1] *= height / photo.camera.height
+        panels = []
+        for transform in (result.initial_transform, result.transform):
+            render = render_rgb_at_photo(reference, photo.cam_from_world, K, width, height, transform, result.near_plane)
+            panel = image.copy()
+            panel[: height // 2] = render[: height // 2]
+            panel[height // 2 - 1 : height // 2 + 1] = 255
+            panels.append(panel)
+        separator = np.full((height, 6, 3), 255, np.uint8)
+        combined = np.concatenate([panels[0], separator, panels[1]], axis=1)
+        name = Path(photo.name).stem
+        cv2.imwrite(str(directory / f"{name}_before_after.png"), cv2.cvtColor(combined, cv2.COLOR_RGB2BGR))

@@ -1,0 +1,70 @@
+"""Per-image losses and their robust aggregation (the paper's least trimmed squares and its ablations).
+
+`lts`: keep the images whose loss is at most the `percentile` (default 50: the median) of the *previous*
+iteration's per-image losses, average the kept ones. `fixed-lts`: the kept set is decided once, from the
+losses at the initial transform. `irls`: Cauchy weights 1 / (1 + (L / m)^2) with m the previous median,
+held fixed within a step (iteratively reweighted least squares). `none`: the plain mean.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+Robust = Literal["lts", "fixed-lts", "irls", "none"]
+LossKind = Literal["l1", "l2"]
+
+
+def per_image_loss(rendered: Tensor, target: Tensor, kind: LossKind) -> Tensor:
+    """[C, h, w, D] rendered vs target -> [C] mean absolute (l1) or squared (l2) error."""
+    difference = rendered - target
+    values = difference.abs() if kind == "l1" else difference.square()
+    return values.flatten(1).mean(1)
+
+
+class RobustAggregator:
+    """Turns the per-image losses of a batch into the scalar to minimise, remembering what it did."""
+
+    def __init__(self, robust: Robust, percentile: float, initial_losses: np.ndarray):
+        """initial_losses: [n_images] losses at the initial transform (seed the "previous iteration")."""
+        if not 0.0 < percentile <= 100.0:
+            raise ValueError(f"LTS percentile must be in (0, 100], got {percentile}.")
+        self.robust = robust
+        self.percentile = percentile
+        self.previous = np.asarray(initial_losses, dtype=np.float64).copy()
+        self.fixed_keep = self.previous <= np.percentile(self.previous, percentile)
+
+    def threshold(self) -> float:
+        return float(np.percentile(self.previous, self.percentile))
+
+    def __call__(self, losses: Tensor, indices: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray]:
+        """Aggregate the batch.
+
+        Args:
+            losses: [B] per-image losses (with gradients).
+            indices: [B] which images of the meta-image they belong to.
+
+        Returns:
+            the scalar objective, kept [B] bool (whether each image counted), weights [B].
+        """
+        values = losses.detach().double().cpu().numpy()
+        if self.robust == "lts":
+            kept = values <= self.threshold()
+        elif self.robust == "fixed-lts":
+            kept = self.fixed_keep[indices]
+        else:
+            kept = np.ones_like(values, dtype=bool)
+        if not kept.any():  # every image of this batch is above the threshold: follow the best one
+            kept = values == values.min()
+        if self.robust == "irls":
+            scale = max(float(np.median(self.previous)), 1e-12)
+            weights = 1.0 / (1.0 + (values / scale) ** 2)
+        else:
+            weights = kept.astype(np.float64)
+        weight_tensor = torch.as_tensor(weights, dtype=losses.dtype)
+        objective = (losses * weight_tensor).sum() / weight_tensor.sum()
+        self.previous[indices] = values
+        return objective, kept, weights

@@ -1,0 +1,194 @@
+"""`ns-register-meta`: ground meta-images in a frozen sg-feature-splat reference model.
+
+    ns-register-meta --load-config outputs/.../config.yml --meta-image scene/meta/front \\
+        --output-dir registrations [--init identity|init.json] [--gt scene/meta/front/gt_transform.json] \\
+        [--config configs/register/fast-cpu.yaml] [--steps 400 ...]
+
+`--config` reads a YAML preset of the registration settings (configs/register/: paper.yaml, fast-cpu.yaml);
+flags given after it override single settings. `--init` and `--gt` take one value per meta-image (a single
+`--init` applies to all). Results go to `<output-dir>/<meta-image name>/` (see registration/outputs.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal, Optional
+
+import numpy as np
+import tyro
+import yaml
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+from rich.text import Text
+
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.registration.meta_image import load_meta_image
+from sg_nerfstudio.registration.metrics import pose_errors
+from sg_nerfstudio.registration.optimize import InitialisationError, RegistrationSettings, prepare_photos, register
+from sg_nerfstudio.registration.outputs import write_outputs
+from sg_nerfstudio.registration.reference import load_reference, read_trainer_config
+from sg_nerfstudio.registration.sim3 import decompose
+
+
+class ArgumentError(InputError):
+    """Command-line arguments that do not fit together."""
+
+
+@dataclass
+class RegisterMetaArgs:
+    """Register meta-images (COLMAP model + photos) to a trained sg-feature-splat reference model."""
+
+    load_config: Path
+    """config.yml of the trained sg-feature-splat reference model."""
+    meta_image: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction]
+    """A meta-image directory (images/ + sparse/0 or sparse/); repeat the flag for several."""
+    output_dir: Path
+    """Results go to <output-dir>/<meta-image directory name>/."""
+    init: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """Initial transform meta -> reference world: 'identity' (the default) or a JSON file with a 4x4
+    "matrix" (transform.json / gt_transform.json format); once for all meta-images or once per meta-image."""
+    gt: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction] = ()
+    """Ground-truth transform (gt_transform.json) to report ΔR / ΔT; once per meta-image, in order."""
+    settings: RegistrationSettings = field(default_factory=RegistrationSettings)
+    overwrite: bool = False
+    """Replace existing result directories."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where the reference model is loaded and rendered."""
+
+
+def read_initial_transform(value: str) -> np.ndarray:
+    if value == "identity":
+        return np.eye(4)
+    path = Path(value)
+    if not path.is_file():
+        raise InitialisationError(f"Initial transform file {path} does not exist; expected 'identity' or a JSON file.")
+    return read_transform_json(path, "Initial transform")
+
+
+def read_transform_json(path: Path, what: str) -> np.ndarray:
+    try:
+        record = json.loads(Path(path).read_text())
+        matrix = np.asarray(record["matrix"] if isinstance(record, dict) else record, dtype=np.float64)
+    except Exception as error:
+        raise InitialisationError(f"{what} {path} is not JSON with a 4x4 \"matrix\" ({type(error).__name__}).") from None
+    try:
+        decompose(matrix)
+    except ValueError as error:
+        raise InitialisationError(f"{what} {path} is not a valid similarity transform: {error}.") from None
+    return matrix
+
+
+def load_settings_preset(path: Path) -> RegistrationSettings:
+    if not path.is_file():
+        raise ArgumentError(f"Settings preset {path} does not exist.")
+    values = yaml.safe_load(path.read_text()) or {}
+    known = {f.name for f in dataclasses.fields(RegistrationSettings)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ArgumentError(f"Settings preset {path} has unknown keys {unknown}; expected some of {sorted(known)}.")
+    return RegistrationSettings(**values)
+
+
+def parse_args(argv: list[str]) -> RegisterMetaArgs:
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--config", type=Path, default=None)
+    known, rest = pre.parse_known_args(argv)
+    settings = load_settings_preset(known.config) if known.config else RegistrationSettings()
+    return tyro.cli(
+        RegisterMetaArgs,
+        args=rest,
+        default=RegisterMetaArgs(load_config=tyro.MISSING, meta_image=tyro.MISSING, output_dir=tyro.MISSING, settings=settings),
+        prog="ns-register-meta",
+        config=(tyro.conf.OmitArgPrefixes,),
+    )
+
+
+def per_meta_values(values: tuple, count: int, flag: str, allow_single: bool) -> list:
+    if len(values) == count:
+        return list(values)
+    if allow_single and len(values) == 1:
+        return list(values) * count
+    expected = f"1 or {count}" if allow_single else f"0 or {count}"
+    raise ArgumentError(f"{flag} was given {len(values)} times for {count} meta-images; expected {expected}.")
+
+
+def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
+    read_trainer_config(args.load_config)  # fail fast on a wrong config, before heavy work
+    metas = [load_meta_image(path) for path in args.meta_image]
+    names = [meta.name for meta in metas]
+    if len(set(names)) != len(names):
+        raise ArgumentError(f"Meta-image directories must have distinct names (results go to <output-dir>/<name>), got {names}.")
+    inits = [read_initial_transform(v) for v in per_meta_values(args.init or ("identity",), len(metas), "--init", allow_single=True)]
+    gts = [read_transform_json(p, "Ground truth") for p in per_meta_values(args.gt, len(metas), "--gt", allow_single=False)] if args.gt else [None] * len(metas)
+    for meta in metas:
+        target = args.output_dir / meta.name
+        if target.exists() and not args.overwrite:
+            raise ArgumentError(f"Result directory {target} exists; pass --overwrite to replace it.")
+        if meta.unlisted:
+            console.print(f"[yellow]{meta.name}: {len(meta.unlisted)} files in images/ are not in the COLMAP model and are ignored: {', '.join(meta.unlisted[:5])}[/yellow]")
+
+    device = "cuda" if args.device == "auto" and _cuda() else ("cpu" if args.device == "auto" else args.device)
+    reference = load_reference(args.load_config, device=device)
+    summaries = []
+    for meta, initial, gt in zip(metas, inits, gts):
+        photos = prepare_photos(reference, meta, args.settings)
+        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True) as progress:
+            task = progress.add_task(f"Registering {meta.name}", total=args.settings.steps)
+            result = register(reference, meta, initial, args.settings, photos=photos, on_step=lambda _: progress.advance(task))
+        errors = None
+        if gt is not None:
+            poses = [p.cam_from_world for p in meta.photos]
+            errors = {"before": pose_errors(poses, initial, gt), "after": pose_errors(poses, result.transform, gt)}
+        target = write_outputs(args.output_dir / meta.name, reference, meta, result, errors, overwrite=args.overwrite)
+        summaries.append({"meta": meta, "result": result, "errors": errors, "target": target})
+    print_summary(summaries, console)
+    return summaries
+
+
+def print_summary(summaries: list[dict], console: Console) -> None:
+    table = Table(title="ns-register-meta")
+    for column in ("meta-image", "photos", "ΔR before (°)", "ΔT before", "ΔR after (°)", "ΔT after", "accurate", "outlier", "trimmed loss", "time (s)"):
+        table.add_column(column, justify="right")
+    for entry in summaries:
+        meta, result, errors = entry["meta"], entry["result"], entry["errors"]
+        if errors:
+            before, after = errors["before"], errors["after"]
+            cells = [f"{before.rotation_deg:.2f}", f"{before.translation:.3f}", f"{after.rotation_deg:.2f}", f"{after.translation:.3f}",
+                     f"{before.accurate()} -> {after.accurate()}", f"{before.outlier()} -> {after.outlier()}"]
+        else:
+            cells = ["-"] * 6
+        table.add_row(meta.name, str(len(meta.photos)), *cells, f"{result.final_trimmed_loss:.4f}", f"{result.wall_time_s:.1f}")
+    console.print(table)
+    for entry in summaries:
+        console.print(f"{entry['meta'].name}: transform, aligned model and report in {entry['target']}", soft_wrap=True)
+
+
+def _cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    console = Console()
+    try:
+        args = parse_args(list(sys.argv[1:] if argv is None else argv))
+        run(args, console)
+    except (InputError, FloatingPointError) as error:
+        Console(stderr=True).print(Text(str(error), style="red"), soft_wrap=True)
+        return 1
+    return 0
+
+
+def entrypoint() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,234 @@
+"""ns-register-meta: Sim(3) maths, frozen model, convergence from a perturbed start, outputs, bad inputs."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import torch
+import yaml
+
+from sg_nerfstudio.registration.meta_image import load_meta_image
+from sg_nerfstudio.registration.metrics import pose_errors
+from sg_nerfstudio.registration.optimize import RegistrationSettings, camera_viewmat, register
+from sg_nerfstudio.registration.reference import load_reference
+from sg_nerfstudio.registration.sim3 import about_point, decompose, invert, perturbation, update_matrix
+from sg_nerfstudio.scripts.register_meta import main as register_main
+
+FAST = dict(steps=60, lr=0.004, lr_final=0.0005, images_per_step=0, seed=0)
+
+
+@pytest.fixture(scope="module")
+def reference_config(trained) -> Path:
+    _, _, config = trained
+    return config.get_base_dir() / "config.yml"
+
+
+@pytest.fixture(scope="module")
+def reference(reference_config):
+    return load_reference(reference_config)
+
+
+@pytest.fixture(scope="module")
+def meta(tiny_scene):
+    return load_meta_image(tiny_scene / "meta" / "front")
+
+
+@pytest.fixture(scope="module")
+def ground_truth(tiny_scene) -> np.ndarray:
+    return np.array(json.loads((tiny_scene / "meta" / "front" / "gt_transform.json").read_text())["matrix"])
+
+
+def perturbed_start(meta, ground_truth, seed, rotation_deg, translation, scale_fraction):
+    """ground truth followed by a perturbation about the cameras' centroid in the reference frame."""
+    noise = perturbation(np.random.default_rng(seed), rotation_deg, translation, scale_fraction)
+    return about_point(noise, meta.centroid_under(ground_truth)) @ ground_truth
+
+
+def test_sim3_helpers():
+    rng = np.random.default_rng(0)
+    matrix = perturbation(rng, 5.0, 0.1, 0.1)
+    scale, rotation, translation = decompose(matrix)
+    assert scale == pytest.approx(1.1) or scale == pytest.approx(0.9)
+    assert np.degrees(np.arccos((np.trace(rotation) - 1) / 2)) == pytest.approx(5.0)
+    assert np.linalg.norm(translation) == pytest.approx(0.1)
+    np.testing.assert_allclose(invert(matrix) @ matrix, np.eye(4), atol=1e-12)
+    centre = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    np.testing.assert_allclose(update_matrix(torch.zeros(7, dtype=torch.float64), centre).numpy(), np.eye(4), atol=1e-15)
+    delta = torch.tensor([0.1, -0.2, 0.05, 0.3, 0.0, -0.1, 0.2], dtype=torch.float64)
+    moved = update_matrix(delta, centre).numpy() @ np.append(centre.numpy(), 1)
+    np.testing.assert_allclose(moved[:3], centre.numpy() + delta[3:6].numpy(), atol=1e-12)  # the centre only translates
+    with pytest.raises(ValueError, match="positive"):
+        decompose(np.diag([-1.0, 1.0, 1.0, 1.0]))
+
+
+def test_camera_viewmat_matches_pycolmap_similarity(meta):
+    matrix = perturbation(np.random.default_rng(1), 20.0, 0.5, 0.3)
+    scale, rotation, translation = decompose(matrix)
+    moved = pycolmap.Reconstruction(meta.reconstruction)
+    moved.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
+    torch_matrix = torch.from_numpy(matrix)
+    for photo in meta.photos:
+        ours = camera_viewmat(torch.from_numpy(photo.cam_from_world), torch_matrix[:3, :3], torch_matrix[:3, 3], torch.tensor(scale, dtype=torch.float64))
+        expected = moved.find_image_with_name(photo.name).cam_from_world().matrix()
+        np.testing.assert_allclose(ours[:3].numpy(), expected, atol=1e-5)
+
+
+def test_pose_errors(meta, ground_truth):
+    poses = [p.cam_from_world for p in meta.photos]
+    assert pose_errors(poses, ground_truth, ground_truth).rotation_deg == pytest.approx(0.0, abs=1e-4)
+    rotated = perturbed_start(meta, ground_truth, 0, 7.0, 0.0, 0.0)
+    errors = pose_errors(poses, rotated, ground_truth)
+    assert errors.rotation_deg == pytest.approx(7.0, abs=1e-6)
+    assert not errors.accurate() and not errors.outlier()
+
+
+def checkpoint_digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_registration_improves_a_perturbed_start_and_leaves_the_model_untouched(reference, meta, ground_truth):
+    before_digest = checkpoint_digest(reference.checkpoint_path)
+    before_state = {k: v.clone() for k, v in reference.model.state_dict().items()}
+    start = perturbed_start(meta, ground_truth, 0, 4.0, 0.06, 0.06)
+    result = register(reference, meta, start, RegistrationSettings(**FAST))
+    poses = [p.cam_from_world for p in meta.photos]
+    initial, final = pose_errors(poses, start, ground_truth), pose_errors(poses, result.transform, ground_truth)
+    # a 300-step model of 48x36 renders: errors must shrink clearly (the accuracy goal is the benchmark's)
+    assert final.rotation_deg < 0.6 * initial.rotation_deg, (initial, final)
+    assert final.translation < 0.6 * initial.translation, (initial, final)
+    assert result.final_trimmed_loss < float(np.median(result.initial_losses))
+    assert all(not p.requires_grad for p in reference.model.parameters())
+    for key, value in reference.model.state_dict().items():
+        assert torch.equal(value, before_state[key]), key
+    assert checkpoint_digest(reference.checkpoint_path) == before_digest
+
+
+def test_same_seed_same_transform(reference, meta, ground_truth):
+    start = perturbed_start(meta, ground_truth, 5, 3.0, 0.05, 0.05)
+    settings = RegistrationSettings(**{**FAST, "steps": 15, "images_per_step": 2})
+    first = register(reference, meta, start, settings).transform
+    second = register(reference, meta, start, settings).transform
+    np.testing.assert_allclose(first, second, atol=1e-6, rtol=0)
+
+
+def test_lts_ignores_the_worst_photos(reference, meta, ground_truth):
+    result = register(reference, meta, ground_truth, RegistrationSettings(**{**FAST, "steps": 10}))
+    kept = [row["kept"] for row in result.history]
+    assert 0 < sum(kept) < len(kept)
+    worst = int(np.argmax(result.initial_losses))
+    assert result.ignored_fraction[worst] == pytest.approx(1.0)
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, str]:
+    capsys.readouterr()
+    code = register_main(args)
+    return code, capsys.readouterr().err
+
+
+def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys, ground_truth):
+    start = perturbed_start(load_meta_image(tiny_scene / "meta" / "front"), ground_truth, 7, 3.0, 0.05, 0.05)
+    init = tmp_path / "init.json"
+    init.write_text(json.dumps({"matrix": start.tolist()}))
+    out = tmp_path / "out"
+    code, err = run_cli([
+        "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
+        "--init", str(init), "--gt", str(tiny_scene / "meta" / "front" / "gt_transform.json"),
+        "--steps", "12", "--images-per-step", "2", "--lr", "0.004",
+    ], capsys)
+    assert code == 0, err
+    result = out / "front"
+    record = json.loads((result / "transform.json").read_text())
+    assert {"matrix", "scale", "rotation_wxyz", "translation", "initial", "final_trimmed_loss", "steps", "wall_time_s", "settings"} <= set(record)
+    assert record["steps"] == 12 and record["settings"]["images_per_step"] == 2
+    np.testing.assert_allclose(record["initial"]["matrix"], start, atol=1e-9)
+    aligned = pycolmap.Reconstruction(str(result / "aligned"))
+    meta = load_meta_image(tiny_scene / "meta" / "front")
+    matrix = np.array(record["matrix"])
+    for photo in meta.photos:
+        centre = aligned.find_image_with_name(photo.name).projection_center()
+        np.testing.assert_allclose(centre, (matrix @ np.append(photo.centre, 1))[:3], atol=1e-6)
+    rows = (result / "losses.csv").read_text().strip().splitlines()
+    assert rows[0] == "step,image,loss,kept,weight" and len(rows) == 1 + 12 * 2
+    for name in ("loss_curve.png", "ignored_histogram.png"):
+        assert cv2.imread(str(result / "report" / name)) is not None
+    assert len(list((result / "report" / "comparisons").glob("*_before_after.png"))) >= 2
+    metrics = json.loads((result / "metrics.json").read_text())
+    assert set(metrics) == {"before", "after"} and "delta_R_deg" in metrics["after"]
+    assert not any(p.name.startswith(".") for p in out.iterdir())  # no staging directory left
+
+
+def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
+    target = tmp_path / "front"
+    shutil.copytree(tiny_scene / "meta" / "front", target)
+    return target
+
+
+@pytest.mark.parametrize("case", [
+    "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size",
+    "negative_scale", "nan_init", "sees_nothing",
+])
+def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
+    meta_dir = copy_meta(tiny_scene, tmp_path)
+    config = reference_config
+    init = "identity"
+    gt = meta_dir / "gt_transform.json"
+    expected = {
+        "not_feature_splat": "expected an sg-feature-splat model",
+        "missing_model": "No COLMAP model",
+        "corrupt_model": "could not be read",
+        "missing_photo": "missing from",
+        "too_few_photos": "at least 3 are needed",
+        "wrong_size": "pixels but its COLMAP camera says",
+        "negative_scale": "scale must be positive",
+        "nan_init": "finite 4x4",
+        "sees_nothing": "renders nothing",
+    }[case]
+    if case == "not_feature_splat":
+        from nerfstudio.configs.method_configs import method_configs
+
+        other = copy.deepcopy(method_configs["splatfacto"])
+        config = tmp_path / "config.yml"
+        config.write_text(yaml.dump(other))
+    elif case == "missing_model":
+        shutil.rmtree(meta_dir / "sparse")
+    elif case == "corrupt_model":
+        (meta_dir / "sparse" / "0" / "images.bin").write_bytes(b"\x01garbage")
+    elif case == "missing_photo":
+        (meta_dir / "images" / "front_002.png").unlink()
+    elif case == "too_few_photos":
+        model = pycolmap.Reconstruction(str(meta_dir / "sparse" / "0"))
+        for frame_id in list(model.reg_frame_ids())[:3]:
+            model.deregister_frame(frame_id)
+        model.write_binary(str(meta_dir / "sparse" / "0"))
+    elif case == "wrong_size":
+        photo = meta_dir / "images" / "front_001.png"
+        cv2.imwrite(str(photo), cv2.resize(cv2.imread(str(photo)), (20, 20)))
+    elif case in ("negative_scale", "nan_init"):
+        matrix = np.eye(4)
+        matrix[0, 0] = -1.0 if case == "negative_scale" else np.nan
+        init = str(tmp_path / "init.json")
+        Path(init).write_text(json.dumps({"matrix": matrix.tolist()}))
+    elif case == "sees_nothing":
+        far = np.eye(4)
+        far[:3, 3] = [1e4, 1e4, 1e4]
+        init = str(tmp_path / "init.json")
+        Path(init).write_text(json.dumps({"matrix": (far @ np.array(json.loads(gt.read_text())["matrix"])).tolist()}))
+    out = tmp_path / "out"
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    code, err = run_cli([
+        "--load-config", str(config), "--meta-image", str(meta_dir), "--output-dir", str(out), "--init", init,
+        "--steps", "3", "--images-per-step", "2",
+    ], capsys)
+    assert code == 1
+    assert expected in err, err
+    assert err.strip().count("\n") == 0, err
+    assert not out.exists()
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # inputs untouched

@@ -78,6 +78,7 @@ sg_feature_splat_config = TrainerConfig(
         "quats": _adam(0.001),
         "features": _adam(0.05, 1.6e-6),
         "feature_decoder": _adam(1e-3),
+        "background": _adam(1e-2),
         "camera_opt": _adam(1e-4, 5e-7, warmup_steps=1000, lr_pre_warmup=0),
         "bilateral_grid": _adam(2e-3, 1e-4, warmup_steps=1000, lr_pre_warmup=0),
     },

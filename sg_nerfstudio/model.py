@@ -60,6 +60,10 @@ class FeatureSplatfactoModelConfig(SplatfactoModelConfig):
     densify_grad_thresh_without_absgrad: float = 0.0002
     """Densification gradient threshold where absgrad is unavailable (CPU backend); gsplat's default for
     plain means2d gradients, which are smaller than absgrad's."""
+    background_color: Literal["random", "black", "white", "learned"] = "random"
+    """splatfacto's choices plus "learned": one RGB colour optimised with the model, shown wherever no
+    Gaussian covers the view (a stand-in for a sky that short CPU runs cannot fill with Gaussians; it raises
+    PSNR but lets registration drift towards views of empty space, so it is not the default)."""
 
 
 class FeatureSplatfactoModel(SplatfactoModel):
@@ -85,6 +89,9 @@ class FeatureSplatfactoModel(SplatfactoModel):
         self.crop_box = None
         if self.config.background_color == "random":
             self.background_color = torch.tensor([0.1490, 0.1647, 0.2157])  # viser's background, as splatfacto
+        elif self.config.background_color == "learned":
+            self.background_logit = Parameter(torch.zeros(3))
+            self.background_color = torch.full((3,), 0.5)
         else:
             self.background_color = get_color(self.config.background_color)
         if self.config.use_bilateral_grid:
@@ -171,7 +178,14 @@ class FeatureSplatfactoModel(SplatfactoModel):
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_param_groups()
         groups["feature_decoder"] = list(self.feature_decoder.parameters())
+        if self.config.background_color == "learned":
+            groups["background"] = [self.background_logit]
         return groups
+
+    def _get_background_color(self) -> Tensor:
+        if self.config.background_color == "learned":
+            return torch.sigmoid(self.background_logit)
+        return super()._get_background_color()
 
     def _configure_strategy(self, backend: str) -> None:
         """Densify on plain gradients when absgrad is unavailable (CPU backend); once per backend."""
@@ -199,7 +213,7 @@ class FeatureSplatfactoModel(SplatfactoModel):
         if self.crop_box is not None and not self.training:
             inside = self.crop_box.within(self.means).squeeze()
             if inside.sum() == 0:
-                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self.background_color)
+                return self.get_empty_outputs(int(camera.width.item()), int(camera.height.item()), self._get_background_color().detach())
             params = {name: value[inside] for name, value in params.items()}
 
         scale = self._get_downscale_factor()

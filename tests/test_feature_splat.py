@@ -22,7 +22,7 @@ def test_training_reduces_colour_and_feature_losses(trained):
     _, history, _ = trained
     for key in ("main_loss", "feature_loss"):
         early, late = window_mean(history, key, 0, 20), window_mean(history, key, 280, 300)
-        assert late < 0.7 * early, f"{key}: {early:.4f} -> {late:.4f}"
+        assert late < 0.8 * early, f"{key}: {early:.4f} -> {late:.4f}"
 
 
 def test_densification_changes_count_and_keeps_tensors_aligned(trained):

@@ -53,8 +53,9 @@ class RegistrationSettings:
     """Photos rendered per step; 0 = all of them (paper)."""
     teacher_input_size: Optional[int] = None
     """Teacher input size for the photos; default: the one the reference model was trained with."""
-    render_size: int = 0
-    """Long side of the renders in pixels; 0 = twice the teacher grid."""
+    render_scale: float = 2.0
+    """Long side of the renders as a multiple of the teacher grid (the renders are resized to the grid);
+    the paper renders at full resolution, 1-2 keeps CPU cost low."""
     near_plane: float = 0.7
     """Near plane in dataparser units against floaters (paper: 0.7); lowered automatically to half the
     nearest sparse-point depth of the meta-image so it never cuts away what the photos see."""
@@ -109,7 +110,7 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
             F.interpolate(load(i).permute(2, 0, 1)[None].float() / 255.0, size=(grid, grid), mode="area")[0].permute(1, 2, 0)
             for i in range(len(meta.photos))
         ]
-    long_side = settings.render_size or 2 * grid
+    long_side = max(8, round(settings.render_scale * grid))
     prepared = []
     for photo, target in zip(meta.photos, targets):
         width, height = photo.camera.width, photo.camera.height

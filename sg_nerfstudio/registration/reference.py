@@ -45,6 +45,7 @@ class ReferenceModel:
     feature_bias: Tensor  # [D] added after rendering when render_features are pre-decoded, else empty
     colors: Tensor  # [N, K, 3] SH coefficients when sh_degree > 0, else [N, 3] RGB
     sh_degree: int
+    background: Tensor  # [3] colour where no Gaussian covers the view (the model's eval background)
 
     @property
     def feature_dim(self) -> int:
@@ -64,7 +65,7 @@ class ReferenceModel:
                 self.means, self.quats, self.scales, self.opacities, self.colors, viewmats, Ks, width, height,
                 near_plane=near_plane, sh_degree=self.sh_degree if self.sh_degree > 0 else None, backend=backend,
             )
-            return rgb.clamp(0.0, 1.0), alpha
+            return (rgb + (1.0 - alpha) * self.background).clamp(0.0, 1.0), alpha
         rendered, alpha, _ = rasterize(
             self.means, self.quats, self.scales, self.opacities, self.render_features, viewmats, Ks, width, height,
             near_plane=near_plane, backend=backend,
@@ -151,6 +152,7 @@ def load_reference(config_path: Path, device: str = "cpu") -> ReferenceModel:
             render_features=render_features.detach().clone(),
             feature_bias=bias,
             colors=colors.detach().clone(),
+            background=model._get_background_color().detach().cpu().clone(),
             sh_degree=model.config.sh_degree,
         )
     return reference

@@ -35,7 +35,7 @@ from sg_nerfstudio.training import cpu_config, save, train
 class DemoArgs:
     output: Path = Path("sg_demo")
     """Everything goes here: scene/, reference/ (trained model), registrations/."""
-    train_steps: int = 1500
+    train_steps: int = 1200
     """CPU training steps of the reference model."""
     registration_config: Path = Path("configs/register/fast-cpu.yaml")
     """Registration settings preset (run from the repository root, or pass a path)."""
@@ -49,7 +49,7 @@ def train_reference(scene: Path, output: Path, steps: int, console: Console) -> 
     """A small CPU sg-feature-splat of the reference capture; returns its config.yml."""
     config = cpu_config(scene / "reference", output, steps, TeacherConfig(name="offline", input_size=256), experiment_name="reference")
     config.pipeline.model.resolution_schedule = max(steps // 3, 1)
-    config.pipeline.model.stop_split_at = int(steps * 0.66)
+    config.pipeline.model.stop_split_at = int(steps * 0.75)
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console) as progress:
         task = progress.add_task("Training the reference model (CPU)", total=steps)
         trainer = train(config, lambda *_: progress.advance(task))

@@ -58,12 +58,7 @@ class Photo:
         bgr = cv2.imread(str(self.path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise MetaImageError(f"Photo {self.path} could not be read as an image.")
-        height, width = bgr.shape[:2]
-        if (width, height) != (self.camera.width, self.camera.height):
-            raise MetaImageError(
-                f"Photo {self.path} is {width}x{height} pixels but its COLMAP camera says "
-                f"{self.camera.width}x{self.camera.height}; expected the size the model was built from."
-            )
+        height, width = bgr.shape[:2]  # equal to the camera's: checked by load_meta_image
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         if self.camera.model.name in ("SIMPLE_PINHOLE", "PINHOLE"):
             return rgb

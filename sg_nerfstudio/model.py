@@ -55,7 +55,7 @@ class FeatureSplatfactoModelConfig(SplatfactoModelConfig):
     """Length of the feature vector carried by each Gaussian."""
     feature_loss_weight: float = 1.0
     """Weight of the L1 feature loss against splatfacto's colour loss."""
-    rasterizer_backend: Literal["auto", "gsplat", "torch"] = "auto"
+    rasterizer_backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
     """auto: gsplat's CUDA kernels on CUDA, the pure-PyTorch rasterizer on CPU."""
     densify_grad_thresh_without_absgrad: float = 0.0002
     """Densification gradient threshold where absgrad is unavailable (CPU backend); gsplat's default for
@@ -192,7 +192,7 @@ class FeatureSplatfactoModel(SplatfactoModel):
         if backend == self._strategy_backend:
             return
         self._strategy_backend = backend
-        if backend == "torch" and self.strategy.absgrad:
+        if backend != "gsplat" and self.strategy.absgrad:
             self.strategy.absgrad = False
             self.strategy.grow_grad2d = self.config.densify_grad_thresh_without_absgrad
             CONSOLE.print(

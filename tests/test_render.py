@@ -10,6 +10,8 @@ from sg_nerfstudio.render import rasterize, resolve_backend
 from sg_nerfstudio.render.cpu_rasterizer import brute_force_composite
 from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians
 
+CPU_BACKENDS = ("numba", "torch")  # tile compositor (default) and the pure-torch pair compositor
+
 
 def random_scene(n: int, seed: int, channels: int = 4, dtype=torch.float32, spread: float = 1.0):
     """Gaussians scattered in front of (and some behind / beside) a camera at the origin looking +z."""
@@ -76,11 +78,12 @@ def dense_reference(means, quats, scales, opacities, colors, viewmat, K, width, 
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_image_matches_brute_force_compositor(seed):
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_image_matches_brute_force_compositor(seed, backend):
     means, quats, scales, opacities, colors = random_scene(300, seed, channels=7)
     viewmats = look_at_viewmats(2, seed)
     Ks = intrinsics(2, 24, 18, 20.0)
-    render, alphas, info = rasterize(means, quats, scales, opacities, colors, viewmats, Ks, 24, 18, backend="torch")
+    render, alphas, info = rasterize(means, quats, scales, opacities, colors, viewmats, Ks, 24, 18, backend=backend)
     assert render.shape == (2, 18, 24, 7) and alphas.shape == (2, 18, 24, 1)
     for cam in range(2):
         ref_render, ref_alpha = dense_reference(means, quats, scales, opacities, colors, viewmats[cam], Ks[cam], 24, 18)
@@ -91,23 +94,24 @@ def test_image_matches_brute_force_compositor(seed):
     assert info["width"] == 24 and info["height"] == 18 and info["n_cameras"] == 2
 
 
-def test_depth_modes_background_and_antialiasing():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_depth_modes_background_and_antialiasing(backend):
     means, quats, scales, opacities, colors = random_scene(200, 5, channels=3)
     viewmats, Ks = look_at_viewmats(1, 5), intrinsics(1, 20, 16, 18.0)
     args = (means, quats, scales, opacities, colors, viewmats, Ks, 20, 16)
-    rgbd, alpha, _ = rasterize(*args, render_mode="RGB+D", backend="torch")
-    depth, _, _ = rasterize(*args, render_mode="D", backend="torch")
-    expected_depth, _, _ = rasterize(*args, render_mode="ED", backend="torch")
+    rgbd, alpha, _ = rasterize(*args, render_mode="RGB+D", backend=backend)
+    depth, _, _ = rasterize(*args, render_mode="D", backend=backend)
+    expected_depth, _, _ = rasterize(*args, render_mode="ED", backend=backend)
     torch.testing.assert_close(rgbd[..., 3:], depth)
     torch.testing.assert_close(expected_depth, depth / alpha.clamp(min=1e-10))
     covered = alpha[..., 0] > 0.5
     assert ((expected_depth[..., 0][covered] > 0.5) & (expected_depth[..., 0][covered] < 8.0)).all()
 
     background = torch.tensor([[0.2, 0.4, 0.9]])
-    rgb_bg, _, _ = rasterize(*args, backgrounds=background, backend="torch")
+    rgb_bg, _, _ = rasterize(*args, backgrounds=background, backend=backend)
     torch.testing.assert_close(rgb_bg, rgbd[..., :3] + (1 - alpha) * background[:, None, None, :])
 
-    aa, _, info = rasterize(*args, rasterize_mode="antialiased", backend="torch")
+    aa, _, info = rasterize(*args, rasterize_mode="antialiased", backend=backend)
     covars = covariances_from_quats_scales(quats, scales)
     proj = project_gaussians(means, covars, viewmats, Ks, 20, 16, calc_compensations=True)
     visible = proj.radii[0] > 0
@@ -118,19 +122,21 @@ def test_depth_modes_background_and_antialiasing():
     torch.testing.assert_close(aa[0], ref, rtol=1e-5, atol=2e-6)
 
 
-def test_spherical_harmonics_colours_match_gsplat_basis():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_spherical_harmonics_colours_match_gsplat_basis(backend):
     means, quats, scales, opacities, _ = random_scene(150, 9)
     coeffs = torch.randn(150, 16, 3, generator=torch.Generator().manual_seed(9)) * 0.3
     viewmats, Ks = look_at_viewmats(1, 9), intrinsics(1, 16, 12, 14.0)
     for degree in (0, 1, 2, 3):
-        render, _, _ = rasterize(means, quats, scales, opacities, coeffs, viewmats, Ks, 16, 12, sh_degree=degree, backend="torch")
+        render, _, _ = rasterize(means, quats, scales, opacities, coeffs, viewmats, Ks, 16, 12, sh_degree=degree, backend=backend)
         centre = -viewmats[0, :3, :3].T @ viewmats[0, :3, 3]
         colors = torch.clamp_min(_spherical_harmonics(degree, means - centre, coeffs) + 0.5, 0.0)
         ref, _ = dense_reference(means, quats, scales, opacities, colors, viewmats[0], Ks[0], 16, 12)
         torch.testing.assert_close(render[0], ref, rtol=1e-5, atol=2e-6)
 
 
-def test_gradcheck_all_gaussian_parameters_and_viewmats():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_gradcheck_all_gaussian_parameters_and_viewmats(backend):
     dtype = torch.float64
     means, quats, scales, opacities, colors = random_scene(6, 11, channels=2, dtype=dtype, spread=0.4)
     scales = scales * 3.0  # a few pixels wide at this resolution
@@ -138,7 +144,7 @@ def test_gradcheck_all_gaussian_parameters_and_viewmats():
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors, viewmats)]
 
     def render(m, q, s, o, c, v):
-        image, alpha, _ = rasterize(m, q, s, o, c, v, Ks, 10, 8, render_mode="RGB+ED", backend="torch")
+        image, alpha, _ = rasterize(m, q, s, o, c, v, Ks, 10, 8, render_mode="RGB+ED", backend=backend)
         return image, alpha
 
     image, alpha = render(*inputs)
@@ -146,7 +152,8 @@ def test_gradcheck_all_gaussian_parameters_and_viewmats():
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
-def test_pose_only_gradient_matches_full_gradient():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_pose_only_gradient_matches_full_gradient(backend):
     means, quats, scales, opacities, colors = random_scene(400, 4, channels=5)
     viewmats, Ks = look_at_viewmats(2, 4), intrinsics(2, 20, 16, 18.0)
     weights = torch.randn(2, 16, 20, 5, generator=torch.Generator().manual_seed(0))
@@ -154,7 +161,7 @@ def test_pose_only_gradient_matches_full_gradient():
     def pose_grad(params_require_grad: bool) -> torch.Tensor:
         params = [t.clone().requires_grad_(params_require_grad) for t in (means, quats, scales, opacities, colors)]
         pose = viewmats.clone().requires_grad_(True)
-        render, _, _ = rasterize(*params, pose, Ks, 20, 16, backend="torch")
+        render, _, _ = rasterize(*params, pose, Ks, 20, 16, backend=backend)
         (render * weights).sum().backward()
         return pose.grad
 
@@ -162,7 +169,8 @@ def test_pose_only_gradient_matches_full_gradient():
     assert pose_grad(False).abs().sum() > 0
 
 
-def test_degenerate_scenes_give_background_and_finite_gradients():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_degenerate_scenes_give_background_and_finite_gradients(backend):
     means, quats, scales, opacities, colors = random_scene(40, 3, channels=3)
     means[:10, 2] = -2.0  # behind the camera
     means[10:20, 0] = 50.0  # far outside the image
@@ -173,7 +181,7 @@ def test_degenerate_scenes_give_background_and_finite_gradients():
     for scene in ((means, quats, scales, opacities, colors), tuple(t[:0] for t in (means, quats, scales, opacities, colors))):
         params = [t.clone().requires_grad_(True) for t in scene]
         pose = viewmats.clone().requires_grad_(True)
-        render, alpha, info = rasterize(*params, pose, Ks, 12, 10, backgrounds=background, render_mode="RGB+ED", backend="torch")
+        render, alpha, info = rasterize(*params, pose, Ks, 12, 10, backgrounds=background, render_mode="RGB+ED", backend=backend)
         assert torch.all(alpha == 0)
         torch.testing.assert_close(render[..., :3], background[:, None, None, :].expand(1, 10, 12, 3))
         assert torch.isfinite(render).all()
@@ -184,7 +192,8 @@ def test_degenerate_scenes_give_background_and_finite_gradients():
 
 
 def test_backend_selection_and_input_checks():
-    assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    assert resolve_backend("auto", torch.device("cpu")) == "numba"
+    assert resolve_backend("torch", torch.device("cpu")) == "torch"
     with pytest.raises(RuntimeError, match="backend='gsplat' needs CUDA"):
         resolve_backend("gsplat", torch.device("cpu"))
     means, quats, scales, opacities, colors = random_scene(5, 0)
@@ -197,7 +206,8 @@ def test_backend_selection_and_input_checks():
         rasterize(means, quats, scales, opacities, colors, viewmats, Ks, 8, 8, absgrad=True)
 
 
-def test_default_strategy_densifies_with_cpu_info():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_default_strategy_densifies_with_cpu_info(backend):
     """gsplat's DefaultStrategy (what splatfacto uses) runs unchanged on the CPU backend's info."""
     from gsplat.strategy import DefaultStrategy
 
@@ -213,7 +223,7 @@ def test_default_strategy_densifies_with_cpu_info():
     for step in range(6):
         render, _, info = rasterize(
             params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
-            params["colors"], viewmats, Ks, 24, 18, backend="torch",
+            params["colors"], viewmats, Ks, 24, 18, backend=backend,
         )
         strategy.step_pre_backward(params, optimizers, state, step, info)
         render.mean().backward()

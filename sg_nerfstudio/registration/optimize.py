@@ -60,7 +60,7 @@ class RegistrationSettings:
     """Near plane in dataparser units against floaters (paper: 0.7); lowered automatically to half the
     nearest sparse-point depth of the meta-image so it never cuts away what the photos see."""
     seed: int = 0
-    backend: Literal["auto", "gsplat", "torch"] = "auto"
+    backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
 
 
 @dataclass

@@ -1,10 +1,11 @@
-"""`rasterize()`: one entry point with gsplat's calling convention, on CUDA (gsplat) or CPU (pure torch).
+"""`rasterize()`: one entry point with gsplat's calling convention, on CUDA (gsplat) or the CPU.
 
 Splatfacto and the registration call this instead of `gsplat.rasterization`; with CUDA tensors and an
 importable gsplat it *is* `gsplat.rasterization` (non-packed, so `info` has the [C, N] layout that
-`gsplat.strategy.DefaultStrategy` expects). Elsewhere the CPU backend projects with
-`projection.project_gaussians` and composites with `cpu_rasterizer.composite_camera`, and returns an
-`info` dict with the same keys DefaultStrategy reads (`means2d` with retained grad, `radii`, `width`,
+`gsplat.strategy.DefaultStrategy` expects). Elsewhere the CPU backends project with
+`projection.project_gaussians` and composite with numba's tile compositor
+(`numba_compositor.composite_camera_tiled`, backend "numba", the CPU default) or the pure-torch one
+(`cpu_rasterizer.composite_camera`, backend "torch"; same image, slower), and return an `info` dict with the same keys DefaultStrategy reads (`means2d` with retained grad, `radii`, `width`,
 `height`, `n_cameras`, `gaussian_ids` None, ...).
 
 Frames: `viewmats` are world-to-camera in the OpenCV convention (x right, y down, z forward), `Ks` pinhole
@@ -22,7 +23,7 @@ from sg_nerfstudio.render.cpu_rasterizer import composite_camera, front_to_back
 from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians
 from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
 
-Backend = Literal["auto", "gsplat", "torch"]
+Backend = Literal["auto", "gsplat", "numba", "torch"]
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 
@@ -38,20 +39,36 @@ def gsplat_available() -> bool:
     return True
 
 
-def resolve_backend(backend: Backend, device: torch.device) -> Literal["gsplat", "torch"]:
-    """Pick the backend: 'auto' means gsplat for CUDA tensors when gsplat imports, torch otherwise."""
+def numba_available() -> bool:
+    """True when the numba tile compositor imports (numba is a dependency, but may be missing or broken)."""
+    try:
+        from sg_nerfstudio.render import numba_compositor  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_backend(backend: Backend, device: torch.device) -> Literal["gsplat", "numba", "torch"]:
+    """Pick the backend: 'auto' means gsplat for CUDA tensors when gsplat imports, else numba's CPU
+    compositor when numba imports, else pure torch."""
     if backend == "torch":
         return "torch"
+    if backend == "numba":
+        if not numba_available():
+            raise RuntimeError("backend='numba' needs the numba package (pip install numba); use backend='torch'.")
+        return "numba"
     if backend == "gsplat":
         if device.type != "cuda" or not gsplat_available():
             raise RuntimeError(
                 "backend='gsplat' needs CUDA tensors and an importable gsplat with CUDA; "
-                f"got tensors on {device} (CUDA available: {torch.cuda.is_available()}). Use backend='torch' or 'auto'."
+                f"got tensors on {device} (CUDA available: {torch.cuda.is_available()}). Use backend='auto'."
             )
         return "gsplat"
     if backend != "auto":
-        raise ValueError(f"backend must be 'auto', 'gsplat' or 'torch', got {backend!r}.")
-    return "gsplat" if device.type == "cuda" and gsplat_available() else "torch"
+        raise ValueError(f"backend must be 'auto', 'gsplat', 'numba' or 'torch', got {backend!r}.")
+    if device.type == "cuda" and gsplat_available():
+        return "gsplat"
+    return "numba" if numba_available() else "torch"
 
 
 def rasterize(
@@ -93,7 +110,7 @@ def rasterize(
             "RGB+D", "RGB+ED" (depth appended as the last channel).
         rasterize_mode: "classic" or "antialiased" (opacity compensation of the 2D blur).
         absgrad: gsplat only (CUDA backward); the CPU backend has no absgrad and rejects it.
-        backend: "auto", "gsplat" or "torch".
+        backend: "auto", "gsplat", "numba" or "torch" (see `resolve_backend`).
 
     Returns:
         render [C, H, W, D'], alphas [C, H, W, 1], info dict.
@@ -112,18 +129,22 @@ def rasterize(
         )
     if absgrad:
         raise ValueError("absgrad=True needs gsplat's CUDA backward; the CPU backend provides means2d.grad only.")
-    return _rasterize_torch(
+    return _rasterize_cpu(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
-        eps2d, sh_degree, backgrounds, render_mode, rasterize_mode,
+        eps2d, sh_degree, backgrounds, render_mode, rasterize_mode, chosen,
     )
 
 
-def _rasterize_torch(
+def _rasterize_cpu(
     means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
-    eps2d, sh_degree, backgrounds, render_mode, rasterize_mode,
+    eps2d, sh_degree, backgrounds, render_mode, rasterize_mode, backend,
 ) -> tuple[Tensor, Tensor, dict]:
-    """CPU backend. Culling runs without gradients on all N Gaussians; each camera then re-projects only
+    """CPU backends. Culling runs without gradients on all N Gaussians; each camera then re-projects only
     its visible ones with gradients, so backward work scales with what the camera sees."""
+    if backend == "numba":
+        from sg_nerfstudio.render.numba_compositor import composite_camera_tiled as composite
+    else:
+        composite = composite_camera
     n_cameras = viewmats.shape[0]
     antialiased = rasterize_mode == "antialiased"
     projection_args = dict(width=width, height=height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane)
@@ -157,7 +178,7 @@ def _rasterize_torch(
             cam_colors = torch.cat([cam_colors, depths[:, None]], dim=-1)
         elif render_mode in ("D", "ED"):
             cam_colors = depths[:, None]
-        render, alpha = composite_camera(
+        render, alpha = composite(
             means2d[cam].index_select(0, ids), proj.conics[0], proj.cov2d[0], cam_opacities, cam_colors, width, height
         )
         renders.append(render)
@@ -185,7 +206,7 @@ def _rasterize_torch(
         "width": width,
         "height": height,
         "n_cameras": n_cameras,
-        "backend": "torch",
+        "backend": backend,
     }
     return render, alpha, info
 

@@ -47,6 +47,8 @@ class Args:
     """Per-Gaussian feature length (paper: 128)."""
     stop_split_at: int = 1200
     """Last densification step (splatfacto: 15000); bounds the Gaussian count, hence the CPU step time."""
+    background_color: str = "random"
+    """random (splatfacto's default), black, white or learned (one RGB colour optimised with the model)."""
 
 
 def run(args: Args) -> dict:
@@ -67,6 +69,7 @@ def run(args: Args) -> dict:
     config.pipeline.model.resolution_schedule = args.resolution_schedule
     config.pipeline.model.feature_dim = args.feature_dim
     config.pipeline.model.stop_split_at = args.stop_split_at
+    config.pipeline.model.background_color = args.background_color
 
     start = time.perf_counter()
 

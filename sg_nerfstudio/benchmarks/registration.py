@@ -168,7 +168,7 @@ def prune(reference: ReferenceModel, count: int) -> ReferenceModel:
         return reference
     keep = torch.argsort(reference.opacities, descending=True)[:count]
     return replace(
-        reference, means=reference.means[keep], quats=reference.quats[keep], scales=reference.scales[keep],
+        reference, means=reference.means[keep], covars=reference.covars[keep],
         opacities=reference.opacities[keep], render_features=reference.render_features[keep], colors=reference.colors[keep],
     )
 

@@ -22,6 +22,7 @@ from torch import Tensor
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.render import rasterize
+from sg_nerfstudio.render.projection import covariances_from_quats_scales
 
 Array = np.ndarray
 
@@ -38,8 +39,7 @@ class ReferenceModel:
     world_to_dataparser: Array  # [4, 4] Sim(3)
     teacher: TeacherConfig
     means: Tensor
-    quats: Tensor
-    scales: Tensor
+    covars: Tensor  # [N, 3, 3] world (dataparser-frame) covariances, precomputed since the model is frozen
     opacities: Tensor
     render_features: Tensor  # [N, C]: decoded per Gaussian when that is narrower (the decoder is linear)
     feature_bias: Tensor  # [D] added after rendering when render_features are pre-decoded, else empty
@@ -62,13 +62,14 @@ class ReferenceModel:
         """
         if objective == "photometric":
             rgb, alpha, _ = rasterize(
-                self.means, self.quats, self.scales, self.opacities, self.colors, viewmats, Ks, width, height,
+                self.means, None, None, self.opacities, self.colors, viewmats, Ks, width, height,
                 near_plane=near_plane, sh_degree=self.sh_degree if self.sh_degree > 0 else None, backend=backend,
+                covars=self.covars,
             )
             return (rgb + (1.0 - alpha) * self.background).clamp(0.0, 1.0), alpha
         rendered, alpha, _ = rasterize(
-            self.means, self.quats, self.scales, self.opacities, self.render_features, viewmats, Ks, width, height,
-            near_plane=near_plane, backend=backend,
+            self.means, None, None, self.opacities, self.render_features, viewmats, Ks, width, height,
+            near_plane=near_plane, backend=backend, covars=self.covars,
         )
         if self.feature_bias.numel():
             return rendered + self.feature_bias, alpha
@@ -146,8 +147,7 @@ def load_reference(config_path: Path, device: str = "cpu") -> ReferenceModel:
             world_to_dataparser=world_to_dataparser,
             teacher=config.pipeline.datamanager.teacher,
             means=model.means.detach().clone(),
-            quats=model.quats.detach().clone(),
-            scales=torch.exp(model.scales).detach().clone(),
+            covars=covariances_from_quats_scales(model.quats, torch.exp(model.scales)).detach().clone(),
             opacities=torch.sigmoid(model.opacities).squeeze(-1).detach().clone(),
             render_features=render_features.detach().clone(),
             feature_bias=bias,

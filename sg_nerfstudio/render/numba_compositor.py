@@ -84,80 +84,143 @@ def _pair_alpha(means2d, conics, opacities, max_sigma, g, px, py):  # pragma: no
     return alpha, sigma, dx, dy, raw <= MAX_ALPHA
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath={"reassoc", "contract"})
 def _forward(means2d, conics, opacities, max_sigma, colors, tile_offsets, tile_gaussians, width, height, tiles_x, tile,
              render, final_transmittance, list_end):  # pragma: no cover - compiled
     """Fill render [H*W, D], final_transmittance [H*W] (float64) and list_end [H*W] (one past the
-    last contributing entry of the pixel's tile list)."""
+    last contributing entry of the pixel's tile list).
+
+    Gaussian-outer within a tile (as gsplat's CUDA kernel): each Gaussian's colour row is read once
+    per tile and applied to the tile's pixels that are still transparent enough."""
     channels = colors.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
     for t in prange(n_tiles):
         ty, tx = t // tiles_x, t % tiles_x
         start, end = tile_offsets[t], tile_offsets[t + 1]
-        for y in range(ty * tile, min((ty + 1) * tile, height)):
-            for x in range(tx * tile, min((tx + 1) * tile, width)):
+        y0, x0 = ty * tile, tx * tile
+        rows, cols = min(tile, height - y0), min(tile, width - x0)
+        n = rows * cols
+        transmittance = np.ones(n, dtype=np.float64)
+        last = np.full(n, start, dtype=np.int64)
+        done = np.zeros(n, dtype=np.bool_)
+        alive = n
+        for k in range(start, end):
+            if alive == 0:
+                break
+            g = tile_gaussians[k]
+            for i in range(n):
+                if done[i]:
+                    continue
+                y, x = y0 + i // cols, x0 + i % cols
+                alpha, _, _, _, _ = _pair_alpha(means2d, conics, opacities, max_sigma, g, x + 0.5, y + 0.5)
+                if alpha == 0.0:
+                    continue
+                next_transmittance = transmittance[i] * (1.0 - alpha)
+                if next_transmittance <= TRANSMITTANCE_THRESHOLD:
+                    done[i] = True
+                    alive -= 1
+                    continue
+                weight = alpha * transmittance[i]
                 p = y * width + x
-                transmittance = 1.0
-                last = start
-                for k in range(start, end):
-                    g = tile_gaussians[k]
-                    alpha, _, _, _, _ = _pair_alpha(means2d, conics, opacities, max_sigma, g, x + 0.5, y + 0.5)
-                    if alpha == 0.0:
-                        continue
-                    next_transmittance = transmittance * (1.0 - alpha)
-                    if next_transmittance <= TRANSMITTANCE_THRESHOLD:
-                        break
-                    weight = alpha * transmittance
-                    for d in range(channels):
-                        render[p, d] += weight * colors[g, d]
-                    transmittance = next_transmittance
-                    last = k + 1
-                final_transmittance[p] = transmittance
-                list_end[p] = last
+                for d in range(channels):
+                    render[p, d] += weight * colors[g, d]
+                transmittance[i] = next_transmittance
+                last[i] = k + 1
+        for i in range(n):
+            p = (y0 + i // cols) * width + x0 + i % cols
+            final_transmittance[p] = transmittance[i]
+            list_end[p] = last[i]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath={"reassoc", "contract"})
 def _backward(means2d, conics, opacities, max_sigma, colors, tile_offsets, tile_gaussians, width, height, tiles_x, tile,
               final_transmittance, list_end, grad_render, grad_alpha, with_color_grad,
               grad_means2d, grad_conics, grad_opacities, grad_colors):  # pragma: no cover - compiled
-    """Accumulate gradients into per-worker buffers grad_* [workers, M, ...]; worker w owns tiles w, w+W, ..."""
+    """Accumulate gradients into per-worker buffers grad_* [workers, M, ...]; worker w owns tiles w, w+W, ...
+
+    Walks each tile's list back to front, Gaussian-outer: per Gaussian the tile's pixel contributions
+    are summed locally and added to the worker's buffers once."""
     channels = colors.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
     workers = grad_means2d.shape[0]
     for worker in prange(workers):
+        # the buffers come from np.empty: each worker zeroes its own (page faults in order, in parallel)
+        grad_means2d[worker] = 0.0
+        grad_conics[worker] = 0.0
+        grad_opacities[worker] = 0.0
+        grad_colors[worker] = 0.0
+        color_sum = np.zeros(channels, dtype=np.float64)
         for t in range(worker, n_tiles, workers):
             ty, tx = t // tiles_x, t % tiles_x
             start = tile_offsets[t]
-            for y in range(ty * tile, min((ty + 1) * tile, height)):
-                for x in range(tx * tile, min((tx + 1) * tile, width)):
+            y0, x0 = ty * tile, tx * tile
+            rows, cols = min(tile, height - y0), min(tile, width - x0)
+            n = rows * cols
+            transmittance = np.empty(n, dtype=np.float64)
+            behind = np.zeros(n, dtype=np.float64)  # sum over later pairs of w_k (colors_k . grad + grad_alpha)
+            ends = np.empty(n, dtype=np.int64)
+            last = start
+            for i in range(n):
+                p = (y0 + i // cols) * width + x0 + i % cols
+                transmittance[i] = final_transmittance[p]
+                ends[i] = list_end[p]
+                last = max(last, ends[i])
+            for k in range(last - 1, start - 1, -1):
+                g = tile_gaussians[k]
+                touched = False
+                g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
+                for i in range(n):
+                    if k >= ends[i]:
+                        continue
+                    y, x = y0 + i // cols, x0 + i % cols
+                    alpha, _, dx, dy, unclamped = _pair_alpha(means2d, conics, opacities, max_sigma, g, x + 0.5, y + 0.5)
+                    if alpha == 0.0:
+                        continue
                     p = y * width + x
-                    transmittance = final_transmittance[p]
-                    behind = 0.0  # sum over later pairs of w_k (colors_k . grad + grad_alpha)
-                    for k in range(list_end[p] - 1, start - 1, -1):
-                        g = tile_gaussians[k]
-                        alpha, _, dx, dy, unclamped = _pair_alpha(means2d, conics, opacities, max_sigma, g, x + 0.5, y + 0.5)
-                        if alpha == 0.0:
-                            continue
-                        transmittance = transmittance / (1.0 - alpha)
-                        weight = alpha * transmittance
-                        shade = grad_alpha[p]
+                    if not touched:
+                        touched = True
+                        color_sum[:] = 0.0
+                    transmittance[i] = transmittance[i] / (1.0 - alpha)
+                    weight = alpha * transmittance[i]
+                    shade = grad_alpha[p]
+                    for d in range(channels):
+                        shade += colors[g, d] * grad_render[p, d]
+                    if with_color_grad:
                         for d in range(channels):
-                            shade += colors[g, d] * grad_render[p, d]
-                        if with_color_grad:
-                            for d in range(channels):
-                                grad_colors[worker, g, d] += weight * grad_render[p, d]
-                        grad_of_alpha = transmittance * shade - behind / (1.0 - alpha)
-                        behind += weight * shade
-                        if not unclamped:
-                            continue
-                        visibility = alpha / opacities[g]
-                        grad_opacities[worker, g] += visibility * grad_of_alpha
-                        grad_sigma = -alpha * grad_of_alpha
-                        grad_conics[worker, g, 0] += 0.5 * dx * dx * grad_sigma
-                        grad_conics[worker, g, 1] += dx * dy * grad_sigma
-                        grad_conics[worker, g, 2] += 0.5 * dy * dy * grad_sigma
-                        grad_means2d[worker, g, 0] -= (conics[g, 0] * dx + conics[g, 1] * dy) * grad_sigma
-                        grad_means2d[worker, g, 1] -= (conics[g, 1] * dx + conics[g, 2] * dy) * grad_sigma
+                            color_sum[d] += weight * grad_render[p, d]
+                    grad_of_alpha = transmittance[i] * shade - behind[i] / (1.0 - alpha)
+                    behind[i] += weight * shade
+                    if not unclamped:
+                        continue
+                    g_o += alpha / opacities[g] * grad_of_alpha
+                    grad_sigma = -alpha * grad_of_alpha
+                    g_a += 0.5 * dx * dx * grad_sigma
+                    g_b += dx * dy * grad_sigma
+                    g_c += 0.5 * dy * dy * grad_sigma
+                    g_mx -= (conics[g, 0] * dx + conics[g, 1] * dy) * grad_sigma
+                    g_my -= (conics[g, 1] * dx + conics[g, 2] * dy) * grad_sigma
+                if not touched:
+                    continue
+                if with_color_grad:
+                    for d in range(channels):
+                        grad_colors[worker, g, d] += color_sum[d]
+                grad_opacities[worker, g, 0] += g_o
+                grad_conics[worker, g, 0] += g_a
+                grad_conics[worker, g, 1] += g_b
+                grad_conics[worker, g, 2] += g_c
+                grad_means2d[worker, g, 0] += g_mx
+                grad_means2d[worker, g, 1] += g_my
+
+
+@njit(parallel=True, cache=True)
+def _sum_workers(buffers):  # pragma: no cover - compiled
+    """[W, M, K] -> [M, K], parallel over M."""
+    total = np.empty(buffers.shape[1:], dtype=buffers.dtype)
+    for g in prange(buffers.shape[1]):
+        total[g] = buffers[0, g]
+        for worker in range(1, buffers.shape[0]):
+            total[g] += buffers[worker, g]
+    return total
 
 
 class _TileComposite(torch.autograd.Function):
@@ -190,18 +253,18 @@ class _TileComposite(torch.autograd.Function):
         workers = numba.get_num_threads()
         m, channels = colors.shape
         with_color_grad = bool(ctx.needs_input_grad[3])
-        grad_means2d = np.zeros((workers, m, 2), dtype=colors.dtype)
-        grad_conics = np.zeros((workers, m, 3), dtype=colors.dtype)
-        grad_opacities = np.zeros((workers, m), dtype=colors.dtype)
-        grad_colors = np.zeros((workers, m if with_color_grad else 0, channels), dtype=colors.dtype)
+        grad_means2d = np.empty((workers, m, 2), dtype=colors.dtype)
+        grad_conics = np.empty((workers, m, 3), dtype=colors.dtype)
+        grad_opacities = np.empty((workers, m, 1), dtype=colors.dtype)
+        grad_colors = np.empty((workers, m if with_color_grad else 0, channels), dtype=colors.dtype)
         _backward(
             *ctx.gaussians, *ctx.plan, *ctx.pixel_state,
             grad_render.detach().contiguous().numpy(), grad_alpha.detach().contiguous().numpy(), with_color_grad,
             grad_means2d, grad_conics, grad_opacities, grad_colors,
         )
-        summed = [torch.from_numpy(buffer.sum(0)) for buffer in (grad_means2d, grad_conics, grad_opacities)]
-        color_grad = torch.from_numpy(grad_colors.sum(0)) if with_color_grad else None
-        return summed[0], summed[1], summed[2], color_grad, None, None, None
+        summed = [torch.from_numpy(_sum_workers(buffer)) for buffer in (grad_means2d, grad_conics, grad_opacities)]
+        color_grad = torch.from_numpy(_sum_workers(grad_colors)) if with_color_grad else None
+        return summed[0], summed[1], summed[2][:, 0], color_grad, None, None, None
 
 
 def composite_camera_tiled(

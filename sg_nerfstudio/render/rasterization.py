@@ -90,6 +90,7 @@ def rasterize(
     rasterize_mode: Literal["classic", "antialiased"] = "classic",
     absgrad: bool = False,
     backend: Backend = "auto",
+    covars: Optional[Tensor] = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Render N Gaussians into C cameras.
 
@@ -111,11 +112,15 @@ def rasterize(
         rasterize_mode: "classic" or "antialiased" (opacity compensation of the 2D blur).
         absgrad: gsplat only (CUDA backward); the CPU backend has no absgrad and rejects it.
         backend: "auto", "gsplat", "numba" or "torch" (see `resolve_backend`).
+        covars: [N, 3, 3] world-frame covariances; when given, `quats` and `scales` are ignored (may be
+            None), as in gsplat. A frozen model passes them precomputed.
 
     Returns:
         render [C, H, W, D'], alphas [C, H, W, 1], info dict.
     """
-    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode)
+    if covars is not None:
+        quats = scales = None
+    _check_inputs(means, quats, scales, covars, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode)
     chosen = resolve_backend(backend, means.device)
     if chosen == "gsplat":
         from gsplat.rendering import rasterization as gsplat_rasterization
@@ -125,18 +130,20 @@ def rasterize(
             viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane,
             far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, packed=False,
             backgrounds=backgrounds, render_mode=render_mode, absgrad=absgrad,
-            rasterize_mode=rasterize_mode,
+            rasterize_mode=rasterize_mode, covars=covars,
         )
     if absgrad:
         raise ValueError("absgrad=True needs gsplat's CUDA backward; the CPU backend provides means2d.grad only.")
+    if covars is None:
+        covars = covariances_from_quats_scales(quats, scales)
     return _rasterize_cpu(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+        means, covars, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
         eps2d, sh_degree, backgrounds, render_mode, rasterize_mode, chosen,
     )
 
 
 def _rasterize_cpu(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
+    means, covars, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
     eps2d, sh_degree, backgrounds, render_mode, rasterize_mode, backend,
 ) -> tuple[Tensor, Tensor, dict]:
     """CPU backends. Culling runs without gradients on all N Gaussians; each camera then re-projects only
@@ -149,7 +156,7 @@ def _rasterize_cpu(
     antialiased = rasterize_mode == "antialiased"
     projection_args = dict(width=width, height=height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane)
     with torch.no_grad():
-        culling = project_gaussians(means, covariances_from_quats_scales(quats, scales), viewmats, Ks, **projection_args)
+        culling = project_gaussians(means, covars, viewmats, Ks, **projection_args)
     visible_ids = [front_to_back(culling.radii[cam], culling.depths[cam]) for cam in range(n_cameras)]
 
     # means2d [C, N, 2] for DefaultStrategy: the grad it reads after backward is the gradient of the
@@ -158,9 +165,7 @@ def _rasterize_cpu(
     projections = []
     for cam, ids in enumerate(visible_ids):
         proj = project_gaussians(
-            means.index_select(0, ids),
-            covariances_from_quats_scales(quats.index_select(0, ids), scales.index_select(0, ids)),
-            viewmats[cam : cam + 1], Ks[cam : cam + 1], calc_compensations=antialiased, **projection_args,
+            means.index_select(0, ids), covars.index_select(0, ids), viewmats[cam : cam + 1], Ks[cam : cam + 1], calc_compensations=antialiased, **projection_args,
         )
         cam_opacities = opacities.index_select(0, ids)
         if proj.compensations is not None:
@@ -221,13 +226,16 @@ def _camera_colors(colors: Tensor, sh_degree: Optional[int], means: Tensor, view
     return torch.clamp_min(evaluate_sh(sh_degree, dirs, colors.index_select(0, ids)) + 0.5, 0.0)
 
 
-def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode) -> None:
+def _check_inputs(means, quats, scales, covars, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode) -> None:
     n = means.shape[0]
     if means.dim() != 2 or means.shape[1] != 3:
         raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}.")
-    for name, tensor, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 3)), ("opacities", opacities, (n,))):
-        if tuple(tensor.shape) != shape:
-            raise ValueError(f"{name} must be {list(shape)} to match means, got {tuple(tensor.shape)}.")
+    shaped = [("opacities", opacities, (n,))]
+    shaped += [("covars", covars, (n, 3, 3))] if covars is not None else [("quats", quats, (n, 4)), ("scales", scales, (n, 3))]
+    for name, tensor, shape in shaped:
+        if tensor is None or tuple(tensor.shape) != shape:
+            found = None if tensor is None else tuple(tensor.shape)
+            raise ValueError(f"{name} must be {list(shape)} to match means, got {found}.")
     expected_dims = 2 if sh_degree is None else 3
     if colors.dim() != expected_dims or colors.shape[0] != n:
         layout = "[N, D]" if sh_degree is None else "[N, K, 3] SH coefficients"

@@ -140,7 +140,7 @@ def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
         photos = prepare_photos(reference, meta, args.settings)
         with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True) as progress:
             task = progress.add_task(f"Registering {meta.name}", total=args.settings.steps)
-            result = register(reference, meta, initial, args.settings, photos=photos, on_step=lambda _: progress.advance(task))
+            result = register(reference, meta, initial, args.settings, photos=photos, on_step=lambda *_: progress.advance(task))
         errors = None
         if gt is not None:
             poses = [p.cam_from_world for p in meta.photos]

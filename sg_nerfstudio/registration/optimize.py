@@ -3,14 +3,11 @@
 Per step: transform the photos' cameras by T = U(delta) o T0 (dataparser frame), render the reference
 model's decoded features (or colours) from them, resize to the teacher grid, compare with the photos'
 teacher maps (L1 or L2 per image), aggregate robustly (LTS by default), and take an Adam step on the 7
-parameters delta (the paper), or a Levenberg-Marquardt step on the same objective
-(`levenberg_marquardt`, the fast preset). Everything the caller passes in and gets back is in the
-reference *world* frame.
+parameters delta. Everything the caller passes in and gets back is in the reference *world* frame.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass, replace
 from typing import Callable, Literal, Optional
@@ -19,11 +16,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-from torchvision.transforms.functional import gaussian_blur
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import FeatureCache, build_teacher, extract_all
-from sg_nerfstudio.registration.levenberg_marquardt import LMSettings, levenberg_marquardt
 from sg_nerfstudio.registration.meta_image import MetaImage
 from sg_nerfstudio.registration.reference import ReferenceModel, resize_to
 from sg_nerfstudio.registration.robust import LossKind, Robust, RobustAggregator, per_image_loss
@@ -40,14 +35,8 @@ class InitialisationError(InputError):
 class RegistrationSettings:
     """How one meta-image is registered (defaults: the paper's settings)."""
 
-    optimizer: Literal["adam", "levenberg-marquardt"] = "adam"
-    """adam (paper) or levenberg-marquardt (Gauss-Newton steps with finite-difference Jacobians; converges
-    in tens of iterations, see `registration.levenberg_marquardt`)."""
     steps: int = 12000
-    """Optimisation steps (paper: 12000 Adam steps); for levenberg-marquardt, the most iterations."""
-    coarse_to_fine: tuple[float, ...] = ()
-    """levenberg-marquardt only: first minimise with the feature maps blurred by Gaussians of these widths
-    (teacher-grid cells, e.g. 2 1), then unblurred; widens the basin of convergence."""
+    """Optimisation steps (paper: 12000)."""
     lr: float = 1e-3
     """Adam learning rate on delta = (omega, nu, log s) (paper: 1e-3)."""
     lr_final: Optional[float] = None
@@ -158,7 +147,6 @@ class Objective:
     def __init__(self, reference: ReferenceModel, photos: list[PreparedPhoto], settings: RegistrationSettings, near_plane: float):
         self.reference, self.photos, self.settings, self.near_plane = reference, photos, settings, near_plane
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
-        self._target_cache: dict[tuple[int, float], Tensor] = {}
 
     def __call__(self, matrix: Tensor, scale: Tensor, indices) -> tuple[Tensor, Tensor]:
         """[B] losses and [B] covered fractions of the photos `indices` under `matrix` [4, 4] (float64)."""
@@ -177,41 +165,6 @@ class Objective:
             self.timings["render"] += middle - start
             self.timings["loss"] += time.perf_counter() - middle
         return torch.stack(losses), torch.stack(coverage)
-
-
-    @torch.no_grad()
-    def residuals(self, matrix: Tensor, scale: Tensor, indices, blur: float = 0.0) -> list[Tensor]:
-        """Flat residuals [h * w * D] (rendered minus target on the teacher grid) of the photos `indices`,
-        both sides blurred by a Gaussian of `blur` grid cells when > 0 (coarse-to-fine)."""
-        flat = []
-        for index in indices:
-            photo = self.photos[index]
-            start = time.perf_counter()
-            viewmat = camera_viewmat(photo.cam_from_meta, matrix[:3, :3], matrix[:3, 3], scale)
-            rendered, _ = self.reference.render(
-                viewmat[None], photo.K[None], photo.width, photo.height, self.near_plane, self.settings.objective, self.settings.backend
-            )
-            middle = time.perf_counter()
-            on_grid = blur_map(resize_to(rendered, tuple(photo.target.shape[:2]))[0], blur)
-            flat.append((on_grid - self._blurred_target(index, blur)).flatten())
-            self.timings["render"] += middle - start
-            self.timings["loss"] += time.perf_counter() - middle
-        return flat
-
-
-    def _blurred_target(self, index: int, blur: float) -> Tensor:
-        key = (index, blur)
-        if key not in self._target_cache:
-            self._target_cache[key] = blur_map(self.photos[index].target, blur)
-        return self._target_cache[key]
-
-
-def blur_map(maps: Tensor, sigma: float) -> Tensor:
-    """[h, w, D] map blurred spatially by a Gaussian of `sigma` cells (reflected borders); sigma 0 = as is."""
-    if sigma <= 0:
-        return maps
-    size = 2 * math.ceil(3.0 * sigma) + 1
-    return gaussian_blur(maps.permute(2, 0, 1), [size, size], [sigma, sigma]).permute(1, 2, 0)
 
 
 def effective_near_plane(meta: MetaImage, initial_ns: Array, requested: float) -> float:
@@ -256,13 +209,38 @@ def register(
         )
     aggregator = RobustAggregator(settings.robust, settings.lts_percentile, initial_losses.double().numpy())
 
+    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
+    optimizer = torch.optim.Adam([delta], lr=settings.lr, eps=settings.adam_eps)
+    gamma = (settings.lr_final / settings.lr) ** (1.0 / max(settings.steps, 1)) if settings.lr_final else 1.0
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
+    rng = np.random.default_rng(settings.seed)
+    batch_size = settings.images_per_step or len(photos)
+    queue: list[int] = []
     history: list[dict] = []
     ignored = np.zeros(len(photos))
     evaluated = np.zeros(len(photos))
-
-    def record(step: int, indices, losses, kept, weights, delta: Tensor) -> None:
-        for index, loss, keep, weight in zip(indices, losses, kept, weights):
-            history.append({"step": step, "image": photos[index].name, "loss": float(loss), "kept": bool(keep), "weight": float(weight)})
+    for step in range(settings.steps):
+        if batch_size >= len(photos):
+            batch = all_indices
+        else:
+            while len(queue) < batch_size:
+                queue.extend(rng.permutation(len(photos)).tolist())
+            batch, queue = queue[:batch_size], queue[batch_size:]
+        update = update_matrix(delta, centre)
+        matrix = update @ t0
+        scale = torch.exp(delta[6]) * scale0
+        losses, _ = objective(matrix, scale, batch)
+        value, kept, weights = aggregator(losses, np.asarray(batch))
+        start = time.perf_counter()
+        optimizer.zero_grad()
+        value.backward()
+        optimizer.step()
+        scheduler.step()
+        objective.timings["backward"] += time.perf_counter() - start
+        if not torch.isfinite(delta).all():
+            raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step}.")
+        for index, loss, keep, weight in zip(batch, losses.detach().tolist(), kept, weights):
+            history.append({"step": step, "image": photos[index].name, "loss": loss, "kept": bool(keep), "weight": float(weight)})
             ignored[index] += not keep
             evaluated[index] += 1
         if on_step is not None:
@@ -270,13 +248,8 @@ def register(
                 current_ns = (update_matrix(delta, centre) @ t0).numpy()
             on_step(step, invert(world_to_ns) @ current_ns)
 
-    if settings.optimizer == "levenberg-marquardt":
-        delta, steps_taken = _run_levenberg_marquardt(objective, aggregator, settings, meta, scale0, centre, t0, all_indices, record)
-    else:
-        delta, steps_taken = _run_adam(objective, aggregator, settings, meta, scale0, centre, t0, all_indices, record)
-
     with torch.no_grad():
-        final_ns = (update_matrix(delta.detach(), centre) @ t0).numpy()
+        final_ns = (update_matrix(delta, centre) @ t0).numpy()
         final_scale = torch.tensor(decompose(final_ns)[0], dtype=torch.float64)
         final_losses, _ = objective(torch.from_numpy(final_ns), final_scale, all_indices)
     final_losses = final_losses.double().numpy()
@@ -289,7 +262,7 @@ def register(
         final_trimmed_loss=float(trimmed.mean()),
         history=history,
         ignored_fraction=ignored / np.maximum(evaluated, 1),
-        steps=steps_taken,
+        steps=settings.steps,
         wall_time_s=time.perf_counter() - started,
         timings=dict(objective.timings),
         near_plane=near_plane,
@@ -297,62 +270,3 @@ def register(
         photo_names=[p.name for p in photos],
         coverage=coverage.double().numpy(),
     )
-
-
-def _run_adam(objective, aggregator, settings, meta, scale0, centre, t0, all_indices, record) -> tuple[Tensor, int]:
-    """The paper's loop: Adam on delta, one (mini-)batch of photos per step. Returns (delta [7], steps)."""
-    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-    optimizer = torch.optim.Adam([delta], lr=settings.lr, eps=settings.adam_eps)
-    gamma = (settings.lr_final / settings.lr) ** (1.0 / max(settings.steps, 1)) if settings.lr_final else 1.0
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
-    rng = np.random.default_rng(settings.seed)
-    batch_size = settings.images_per_step or len(all_indices)
-    queue: list[int] = []
-    for step in range(settings.steps):
-        if batch_size >= len(all_indices):
-            batch = all_indices
-        else:
-            while len(queue) < batch_size:
-                queue.extend(rng.permutation(len(all_indices)).tolist())
-            batch, queue = queue[:batch_size], queue[batch_size:]
-        matrix = update_matrix(delta, centre) @ t0
-        scale = torch.exp(delta[6]) * scale0
-        losses, _ = objective(matrix, scale, batch)
-        value, kept, weights = aggregator(losses, np.asarray(batch))
-        start = time.perf_counter()
-        optimizer.zero_grad()
-        value.backward()
-        optimizer.step()
-        scheduler.step()
-        objective.timings["backward"] += time.perf_counter() - start
-        if not torch.isfinite(delta).all():
-            raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step}.")
-        record(step, batch, losses.detach().tolist(), kept, weights, delta.detach())
-    return delta.detach(), settings.steps
-
-
-def _run_levenberg_marquardt(objective, aggregator, settings, meta, scale0, centre, t0, all_indices, record) -> tuple[Tensor, int]:
-    """Levenberg-Marquardt on x, delta = S x with translations in units of the scene depth. Returns (delta, iterations)."""
-    depths = np.concatenate([p.point_depths for p in meta.photos])
-    depths = depths[depths > 0]
-    depth = scale0 * (float(np.median(depths)) if len(depths) else float(np.linalg.norm(meta.centres.std(0))) or 1.0)
-    units = torch.tensor([1.0, 1.0, 1.0, depth, depth, depth, 1.0], dtype=torch.float64)
-
-    x, done = np.zeros(7), 0
-    levels = [blur for blur in settings.coarse_to_fine if blur > 0] + [0.0]
-    for level, blur in enumerate(levels):
-
-        def residuals(x: Tensor, blur=blur) -> list[Tensor]:
-            delta = units * x
-            matrix = update_matrix(delta, centre) @ t0
-            return objective.residuals(matrix, torch.exp(delta[6]) * scale0, all_indices, blur)
-
-        def on_iteration(iteration: int, step, offset=done) -> None:
-            if not np.all(np.isfinite(step.x)):
-                raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at iteration {offset + iteration}.")
-            record(offset + iteration, all_indices, step.losses, step.kept, step.weights, units * torch.from_numpy(step.x))
-
-        budget = (settings.steps - done) // (len(levels) - level)
-        x, iterations = levenberg_marquardt(residuals, aggregator, LMSettings(steps=budget, loss=settings.loss), on_iteration, x)
-        done += len(iterations)
-    return units * torch.from_numpy(x), done

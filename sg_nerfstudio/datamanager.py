@@ -3,7 +3,7 @@
 Extends nerfstudio's `FullImageDatamanager`: it checks that every image file exists, builds the teacher,
 computes or loads from the on-disk cache the teacher map of every cached (undistorted) image, and
 stores it in the image's cache entry, so every batch (`next_train`, `next_eval`, the eval loader) carries
-`batch["teacher_features"]` [grid, grid, D]. In training ("val" mode) this happens at start-up, so a
+`batch["teacher_features"]` [rows, columns, D]. In training ("val" mode) this happens at start-up, so a
 missing image or an unloadable teacher fails early; for ns-viewer / ns-eval ("test") on the first batch
 that needs them; never for rendering ("inference"). On a CPU device images are cached on that device rather than
 in pinned memory (pinning needs CUDA).

@@ -30,10 +30,13 @@ def test_dinov2_random_weights_shapes_grid_and_normalisation(random_vits14):
     teacher = Dinov2Teacher(TeacherConfig(input_size=112, device="cpu"), model=random_vits14)
     assert teacher.grid_size == 8 and teacher.feature_dim == 384
     features = teacher.extract(smooth_image(0))
-    assert features.shape == (8, 8, 384) and features.dtype == torch.float32
+    # 80x60 image -> 112x84 input (aspect kept) -> 8 x 6 patches
+    assert features.shape == (6, 8, 384) and features.dtype == torch.float32
+    assert teacher.grid_shape(60, 80) == (6, 8) and teacher.grid_shape(80, 60) == (8, 6)
+    assert teacher.extract(smooth_image(0, height=80, width=60)).shape == (8, 6, 384)
     # final LayerNorm (weight 1, bias 0 at init): every patch token has zero mean and unit variance
-    torch.testing.assert_close(features.mean(-1), torch.zeros(8, 8), atol=1e-4, rtol=0)
-    torch.testing.assert_close(features.var(-1, unbiased=False), torch.ones(8, 8), atol=1e-3, rtol=0)
+    torch.testing.assert_close(features.mean(-1), torch.zeros(6, 8), atol=1e-4, rtol=0)
+    torch.testing.assert_close(features.var(-1, unbiased=False), torch.ones(6, 8), atol=1e-3, rtol=0)
     # ImageNet normalisation happens inside: a different image gives different tokens
     assert not torch.allclose(features, teacher.extract(smooth_image(1)))
 
@@ -109,7 +112,11 @@ def test_offline_descriptor_shape_and_appearance_invariance():
     teacher = build_teacher(TeacherConfig(name="offline", input_size=64))
     image = smooth_image(3)
     features = teacher.extract(image)
-    assert features.shape == (8, 8, 36)
+    assert features.shape == (6, 8, 36)  # 80x60 -> 64x48 input (aspect kept) -> 8 x 6 cells
+    portrait = smooth_image(3, height=80, width=60)
+    assert teacher.extract(portrait).shape == (8, 6, 36) == (*teacher.grid_shape(80, 60), 36)
+    # photos of any size with the same aspect ratio get the same grid (no stretch differs between them)
+    assert teacher.grid_shape(120, 160) == teacher.grid_shape(60, 80) == (6, 8)
     changed_image = (image * 1.5 * torch.tensor([1.15, 1.0, 0.8])).clamp(0, 1) ** 0.8  # exposure, white balance, gamma
     feature_change = ((teacher.extract(changed_image) - features).norm() / features.norm()).item()
     rgb_change = ((changed_image - image).norm() / image.norm()).item()

@@ -47,8 +47,9 @@ class Args:
     """Per-Gaussian feature length (paper: 128)."""
     stop_split_at: int = 1200
     """Last densification step (splatfacto: 15000); bounds the Gaussian count, hence the CPU step time."""
-    background_color: str = "random"
-    """random (splatfacto's default), black, white or learned (one RGB colour optimised with the model)."""
+    background_color: str = "learned"
+    """learned (one RGB colour optimised with the model: the synthetic sky is a smooth gradient that
+    Gaussians initialised from SfM points never cover), random (splatfacto's default), black or white."""
 
 
 def run(args: Args) -> dict:

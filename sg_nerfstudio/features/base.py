@@ -24,8 +24,10 @@ class TeacherConfig:
     """dinov2: ViT-S/14 patch tokens (384-d, needs local weights); offline: dense oriented-gradient
     descriptor that needs no weights (for machines without DINOv2)."""
     input_size: Optional[int] = None
-    """Square side the image is resized to before extraction; default 1400 for dinov2 (100x100 grid,
-    as in the paper) and 256 for offline (32x32 grid). Must be a multiple of the patch/cell size."""
+    """Long side the image is resized to before extraction (default 1400 for dinov2, a 100-patch grid as
+    in the paper; 256 for offline, 32 cells). The aspect ratio is kept: the short side is rounded to a
+    multiple of the patch/cell size, so portrait and landscape photos of any size see the scene
+    undistorted. Must be a multiple of the patch/cell size."""
     weights: Optional[Path] = None
     """dinov2 only: a local checkpoint (torch-hub .pth, Hugging Face .safetensors/.bin, or a Hugging Face
     model directory). When unset, the torch-hub and Hugging Face caches are searched."""
@@ -40,12 +42,16 @@ class Teacher(Protocol):
 
     feature_dim: int
     grid_size: int
+    """Cells along the long side of every map."""
 
     def settings(self) -> dict:
         """Everything that changes the output, for cache keys."""
 
+    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
+        """(rows, columns) of the map of an image of this size."""
+
     def extract(self, image: Tensor) -> Tensor:
-        """image [H, W, 3] float in [0, 1] -> features [grid, grid, feature_dim] float32 (CPU)."""
+        """image [H, W, 3] float in [0, 1] -> features [rows, columns, feature_dim] float32 (CPU)."""
 
 
 def resolve_device(device: str) -> torch.device:
@@ -64,3 +70,10 @@ def checked_grid(input_size: int, step: int, what: str) -> int:
             f"use e.g. {max(step, (input_size // step) * step) if input_size > 0 else step * 32}."
         )
     return input_size // step
+
+
+def input_shape(height: int, width: int, input_size: int, step: int) -> tuple[int, int]:
+    """(h, w) an image is resized to: the long side becomes `input_size`, the short side keeps the aspect
+    ratio, rounded to a multiple of `step` (at least one step)."""
+    short = max(step, round(input_size * min(height, width) / max(height, width) / step) * step)
+    return (input_size, short) if height >= width else (short, input_size)

@@ -83,7 +83,7 @@ def extract_all(
         count: number of images.
 
     Returns:
-        one [grid, grid, D] float32 map per image.
+        one [rows, columns, D] float32 map per image.
     """
     get = images if callable(images) else images.__getitem__
     settings = teacher.settings()

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sg_nerfstudio.features.base import TeacherConfig, TeacherInputError, checked_grid, resolve_device
+from sg_nerfstudio.features.base import TeacherConfig, TeacherInputError, checked_grid, input_shape, resolve_device
 
 PATCH_SIZE = 14
 FEATURE_DIM = 384
@@ -149,7 +149,8 @@ def load_vits14(explicit: Optional[Path] = None):
 
 
 class Dinov2Teacher:
-    """DINOv2 ViT-S/14 dense features: image -> [grid, grid, 384] final-LayerNorm patch tokens."""
+    """DINOv2 ViT-S/14 dense features: image -> [rows, columns, 384] final-LayerNorm patch tokens (the
+    image resized to `input_size` on its long side, aspect ratio kept; position embeddings interpolated)."""
 
     feature_dim = FEATURE_DIM
 
@@ -164,15 +165,20 @@ class Dinov2Teacher:
         self._fingerprint = _parameter_fingerprint(self.model)
 
     def settings(self) -> dict:
-        return {"teacher": "dinov2_vits14", "input_size": self.input_size, "weights": self._fingerprint}
+        return {"teacher": "dinov2_vits14", "input_size": self.input_size, "aspect": "kept", "weights": self._fingerprint}
+
+    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
+        rows, columns = input_shape(height, width, self.input_size, PATCH_SIZE)
+        return rows // PATCH_SIZE, columns // PATCH_SIZE
 
     @torch.no_grad()
     def extract(self, image: Tensor) -> Tensor:
         pixels = image.to(self.device, torch.float32).permute(2, 0, 1)[None]
-        pixels = F.interpolate(pixels, size=(self.input_size, self.input_size), mode="bilinear", align_corners=False, antialias=True)
+        size = input_shape(image.shape[0], image.shape[1], self.input_size, PATCH_SIZE)
+        pixels = F.interpolate(pixels, size=size, mode="bilinear", align_corners=False, antialias=True)
         pixels = (pixels - self.mean) / self.std
         tokens = self.model(pixel_values=pixels).last_hidden_state[0, 1:]  # drop the class token
-        return tokens.reshape(self.grid_size, self.grid_size, FEATURE_DIM).float().cpu()
+        return tokens.reshape(size[0] // PATCH_SIZE, size[1] // PATCH_SIZE, FEATURE_DIM).float().cpu()
 
 
 def _parameter_fingerprint(model: torch.nn.Module) -> str:

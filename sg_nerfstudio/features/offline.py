@@ -1,7 +1,7 @@
 """A weight-free dense descriptor: multi-scale histograms of oriented log-intensity gradients.
 
-For machines without DINOv2 weights. Per location of a grid (one cell = `CELL` pixels of the resized
-image) it stacks, for each of three pooling scales (1, 2 and 4 cells), a histogram of signed gradient
+For machines without DINOv2 weights. Per location of a grid (one cell = `CELL` pixels of the image
+resized to `input_size` on its long side, aspect ratio kept) it stacks, for each of three pooling scales (1, 2 and 4 cells), a histogram of signed gradient
 orientations of the *logarithm* of each colour channel (summed over channels, magnitude-weighted, soft
 binned), and normalises each histogram by its length plus an image-relative floor.
 
@@ -22,18 +22,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sg_nerfstudio.features.base import TeacherConfig, checked_grid, resolve_device
+from sg_nerfstudio.features.base import TeacherConfig, checked_grid, input_shape, resolve_device
 
 CELL = 8
 ORIENTATIONS = 12
 POOLING_CELLS = (1, 2, 4)
 DEFAULT_INPUT_SIZE = 256
 LOG_OFFSET = 2.0 / 255.0
-VERSION = 1
+VERSION = 2  # 2: aspect ratio kept
 
 
 class OfflineTeacher:
-    """image [H, W, 3] in [0, 1] -> [grid, grid, 36] oriented-gradient descriptor (grid = input_size / 8)."""
+    """image [H, W, 3] in [0, 1] -> [rows, columns, 36] oriented-gradient descriptor (long side: input_size / 8)."""
 
     feature_dim = ORIENTATIONS * len(POOLING_CELLS)
 
@@ -48,10 +48,15 @@ class OfflineTeacher:
         return {"teacher": "offline_hog", "version": VERSION, "input_size": self.input_size, "cell": CELL,
                 "orientations": ORIENTATIONS, "pooling_cells": list(POOLING_CELLS)}
 
+    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
+        rows, columns = input_shape(height, width, self.input_size, CELL)
+        return rows // CELL, columns // CELL
+
     @torch.no_grad()
     def extract(self, image: Tensor) -> Tensor:
         pixels = image.to(self.device, torch.float32).permute(2, 0, 1)[None]
-        pixels = F.interpolate(pixels, size=(self.input_size, self.input_size), mode="bilinear", align_corners=False, antialias=True)
+        size = input_shape(image.shape[0], image.shape[1], self.input_size, CELL)
+        pixels = F.interpolate(pixels, size=size, mode="bilinear", align_corners=False, antialias=True)
         log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
         gradients = F.conv2d(F.pad(log_channels, (1, 1, 1, 1), mode="replicate"), self.kernels)  # [3, 2, S, S]
         histogram = _soft_orientation_histogram(gradients[:, 0], gradients[:, 1]).sum(0)  # [B, S, S]

@@ -70,7 +70,7 @@ class PreparedPhoto:
     K: Tensor  # [3, 3] float32, at render size
     width: int
     height: int
-    target: Tensor  # [G, G, D] teacher map or RGB on the teacher grid
+    target: Tensor  # [rows, columns, D] teacher map or RGB on the teacher grid
 
 
 @dataclass
@@ -102,12 +102,12 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
             images[index] = torch.from_numpy(meta.photos[index].load_undistorted())
         return images[index]
 
-    grid = teacher.grid_size
+    grid = teacher.grid_size  # cells along the long side
     if settings.objective == "features":
         targets = extract_all(load, len(meta.photos), teacher, FeatureCache(teacher_config.cache_dir), f"Teacher features ({meta.name})")
     else:
         targets = [
-            F.interpolate(load(i).permute(2, 0, 1)[None].float() / 255.0, size=(grid, grid), mode="area")[0].permute(1, 2, 0)
+            F.interpolate(load(i).permute(2, 0, 1)[None].float() / 255.0, size=teacher.grid_shape(*load(i).shape[:2]), mode="area")[0].permute(1, 2, 0)
             for i in range(len(meta.photos))
         ]
     long_side = max(8, round(settings.render_scale * grid))

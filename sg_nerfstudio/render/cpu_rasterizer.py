@@ -223,9 +223,7 @@ def composite_camera(
     n_pixels = width * height
     channels = colors.shape[-1]
     if means2d.shape[0] == 0:
-        # nothing to draw; keep the outputs attached to every input so gradients are zeros, not None
-        zero = (means2d.sum() + conics.sum() + cov2d.sum() + opacities.sum() + colors.sum()) * 0.0
-        return zero + colors.new_zeros(height, width, channels), zero + colors.new_zeros(height, width, 1)
+        return empty_image(means2d, conics, cov2d, opacities, colors, width, height)
 
     plan = plan_compositing(means2d.detach(), conics.detach(), cov2d.detach(), opacities.detach(), width, height)
     alphas = _pair_alphas(_gaussian_table(means2d, conics, opacities), plan.gaussian, plan.pixel, width)
@@ -234,6 +232,13 @@ def composite_camera(
     render = _SparseComposite.apply(weights, colors, plan)
     alpha = torch.zeros(n_pixels, dtype=weights.dtype).index_add(0, plan.pixel, weights)
     return render.reshape(height, width, channels), alpha.reshape(height, width, 1)
+
+
+def empty_image(means2d, conics, cov2d, opacities, colors, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """Zero render [H, W, D] and alpha [H, W, 1] for a camera that sees no Gaussian, still attached to
+    every input so that gradients are zeros rather than None."""
+    zero = (means2d.sum() + conics.sum() + cov2d.sum() + opacities.sum() + colors.sum()) * 0.0
+    return zero + colors.new_zeros(height, width, colors.shape[-1]), zero + colors.new_zeros(height, width, 1)
 
 
 def front_to_back(radii: Tensor, depths: Tensor) -> Tensor:

@@ -33,6 +33,7 @@ from sg_nerfstudio.render.cpu_rasterizer import (
     ALPHA_THRESHOLD,
     MAX_ALPHA,
     TRANSMITTANCE_THRESHOLD,
+    empty_image,
     support_boxes,
 )
 
@@ -283,8 +284,7 @@ def composite_camera_tiled(
     """
     channels = colors.shape[-1]
     if means2d.shape[0] == 0:
-        zero = (means2d.sum() + conics.sum() + cov2d.sum() + opacities.sum() + colors.sum()) * 0.0
-        return zero + colors.new_zeros(height, width, channels), zero + colors.new_zeros(height, width, 1)
+        return empty_image(means2d, conics, cov2d, opacities, colors, width, height)
     dtype = colors.dtype
     render, alpha = _TileComposite.apply(
         means2d.to(dtype), conics.to(dtype), opacities.to(dtype), colors, cov2d, width, height

@@ -1,8 +1,8 @@
 """A weight-free dense descriptor: multi-scale histograms of oriented log-intensity gradients.
 
 For machines without DINOv2 weights. Per location of a grid (one cell = `CELL` pixels of the image
-resized to `input_size` on its long side, aspect ratio kept) it stacks, for each of three pooling scales (1, 2 and 4 cells), a histogram of signed gradient
-orientations of the *logarithm* of each colour channel (summed over channels, magnitude-weighted, soft
+resized to `input_size` on its long side, aspect ratio kept) it stacks, for each of three pooling
+scales (1, 2 and 4 cells), a histogram of signed gradient orientations of the *logarithm* of each colour channel (summed over channels, magnitude-weighted, soft
 binned), and normalises each histogram by its length plus an image-relative floor.
 
 Invariant (up to clipping, sensor noise and the small log offset) to:

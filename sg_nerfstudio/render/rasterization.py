@@ -5,8 +5,9 @@ importable gsplat it *is* `gsplat.rasterization` (non-packed, so `info` has the 
 `gsplat.strategy.DefaultStrategy` expects). Elsewhere the CPU backends project with
 `projection.project_gaussians` and composite with numba's tile compositor
 (`numba_compositor.composite_camera_tiled`, backend "numba", the CPU default) or the pure-torch one
-(`cpu_rasterizer.composite_camera`, backend "torch"; same image, slower), and return an `info` dict with the same keys DefaultStrategy reads (`means2d` with retained grad, `radii`, `width`,
-`height`, `n_cameras`, `gaussian_ids` None, ...).
+(`cpu_rasterizer.composite_camera`, backend "torch"; same image, slower), and return an `info` dict
+with the same keys DefaultStrategy reads (`means2d` with retained grad, `radii`, `width`, `height`,
+`n_cameras`, `gaussian_ids` None, ...).
 
 Frames: `viewmats` are world-to-camera in the OpenCV convention (x right, y down, z forward), `Ks` pinhole
 intrinsics in pixels, pixel (i, j) has its centre at (j + 0.5, i + 0.5) -- all as in gsplat.

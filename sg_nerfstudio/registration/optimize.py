@@ -192,6 +192,7 @@ def register(
     started = time.perf_counter()
     photos = photos if photos is not None else prepare_photos(reference, meta, settings)
     world_to_ns = reference.world_to_dataparser
+    ns_to_world = invert(world_to_ns)
     initial_ns = world_to_ns @ initial_world
     near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
     objective = Objective(reference, photos, settings, near_plane)
@@ -246,7 +247,7 @@ def register(
         if on_step is not None:
             with torch.no_grad():
                 current_ns = (update_matrix(delta, centre) @ t0).numpy()
-            on_step(step, invert(world_to_ns) @ current_ns)
+            on_step(step, ns_to_world @ current_ns)
 
     with torch.no_grad():
         final_ns = (update_matrix(delta, centre) @ t0).numpy()
@@ -255,7 +256,7 @@ def register(
     final_losses = final_losses.double().numpy()
     trimmed = final_losses[final_losses <= np.percentile(final_losses, settings.lts_percentile)] if settings.robust != "none" else final_losses
     return RegistrationResult(
-        transform=invert(world_to_ns) @ final_ns,
+        transform=ns_to_world @ final_ns,
         initial_transform=np.asarray(initial_world, dtype=np.float64),
         final_losses=final_losses,
         initial_losses=initial_losses.double().numpy(),

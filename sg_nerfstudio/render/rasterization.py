@@ -166,7 +166,8 @@ def _rasterize_cpu(
     projections = []
     for cam, ids in enumerate(visible_ids):
         proj = project_gaussians(
-            means.index_select(0, ids), covars.index_select(0, ids), viewmats[cam : cam + 1], Ks[cam : cam + 1], calc_compensations=antialiased, **projection_args,
+            means.index_select(0, ids), covars.index_select(0, ids), viewmats[cam : cam + 1], Ks[cam : cam + 1],
+            calc_compensations=antialiased, **projection_args,
         )
         cam_opacities = opacities.index_select(0, ids)
         if proj.compensations is not None:

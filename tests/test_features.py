@@ -168,3 +168,21 @@ def test_cache_hits_misses_and_corruption(tmp_path, capsys):
     extract_all(images, 3, other_settings, cache, "test")
     assert teacher.calls + other_settings.calls == 1
     assert re.search(r"Ignoring corrupt feature cache file", capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("name", ["offline", "dinov2"])
+def test_describe_is_extract_with_gradients_and_a_forced_grid(name, random_vits14):
+    """Registration's teacher-on-render objective differentiates the teacher through the rendered image."""
+    torch.manual_seed(0)
+    if name == "offline":
+        teacher = build_teacher(TeacherConfig(name="offline", input_size=64, device="cpu"))
+    else:
+        teacher = Dinov2Teacher(TeacherConfig(name="dinov2", input_size=56, device="cpu"), model=random_vits14)
+    image = torch.rand(30, 40, 3)
+    image[:, :12] = 0.5  # a flat region: where sqrt and atan2 have no derivative at zero gradient
+    torch.testing.assert_close(teacher.describe(image.clone()).detach(), teacher.extract(image), rtol=0, atol=1e-6)
+    pixels = image.clone().requires_grad_(True)
+    forced = teacher.describe(pixels, (5, 7))
+    assert forced.shape == (5, 7, teacher.feature_dim)
+    forced.square().sum().backward()
+    assert torch.isfinite(pixels.grad).all() and pixels.grad.abs().sum() > 0

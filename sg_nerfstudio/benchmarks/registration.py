@@ -43,6 +43,7 @@ from sg_nerfstudio.synthetic.generator import read_scene_config
 
 ABLATIONS = {
     "full": {},
+    "decoded-features": {"objective": "features"},
     "photometric": {"objective": "photometric"},
     "l2": {"loss": "l2"},
     "none": {"robust": "none"},

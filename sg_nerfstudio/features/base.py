@@ -53,6 +53,9 @@ class Teacher(Protocol):
     def extract(self, image: Tensor) -> Tensor:
         """image [H, W, 3] float in [0, 1] -> features [rows, columns, feature_dim] float32 (CPU)."""
 
+    def describe(self, image: Tensor, grid: Optional[tuple[int, int]] = None) -> Tensor:
+        """`extract` with gradients, on the image's device; `grid` = (rows, columns) forces the map's shape."""
+
 
 def resolve_device(device: str) -> torch.device:
     if device == "auto":

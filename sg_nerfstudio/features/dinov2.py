@@ -173,12 +173,20 @@ class Dinov2Teacher:
 
     @torch.no_grad()
     def extract(self, image: Tensor) -> Tensor:
-        pixels = image.to(self.device, torch.float32).permute(2, 0, 1)[None]
-        size = input_shape(image.shape[0], image.shape[1], self.input_size, PATCH_SIZE)
-        pixels = F.interpolate(pixels, size=size, mode="bilinear", align_corners=False, antialias=True)
+        return self.describe(image.to(self.device, torch.float32)).float().cpu()
+
+    def describe(self, image: Tensor, grid: Optional[tuple[int, int]] = None) -> Tensor:
+        """Differentiable `extract` on the teacher's device: [H, W, 3] -> [rows, columns, 384].
+
+        `grid` (rows, columns) forces the map's shape (the image is resized to grid * 14 pixels); by default
+        it is `grid_shape(H, W)`.
+        """
+        rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
+        pixels = image.to(self.device).permute(2, 0, 1)[None]
+        pixels = F.interpolate(pixels, size=(rows * PATCH_SIZE, columns * PATCH_SIZE), mode="bilinear", align_corners=False, antialias=True)
         pixels = (pixels - self.mean) / self.std
         tokens = self.model(pixel_values=pixels).last_hidden_state[0, 1:]  # drop the class token
-        return tokens.reshape(size[0] // PATCH_SIZE, size[1] // PATCH_SIZE, FEATURE_DIM).float().cpu()
+        return tokens.reshape(rows, columns, FEATURE_DIM)
 
 
 def _parameter_fingerprint(model: torch.nn.Module) -> str:

@@ -17,6 +17,7 @@ Not invariant to: viewpoint changes beyond a cell, cast shadows and shading edge
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
@@ -30,6 +31,7 @@ POOLING_CELLS = (1, 2, 4)
 DEFAULT_INPUT_SIZE = 256
 LOG_OFFSET = 2.0 / 255.0
 VERSION = 2  # 2: aspect ratio kept
+TINY = 1e-10
 
 
 class OfflineTeacher:
@@ -54,11 +56,19 @@ class OfflineTeacher:
 
     @torch.no_grad()
     def extract(self, image: Tensor) -> Tensor:
-        pixels = image.to(self.device, torch.float32).permute(2, 0, 1)[None]
-        size = input_shape(image.shape[0], image.shape[1], self.input_size, CELL)
-        pixels = F.interpolate(pixels, size=size, mode="bilinear", align_corners=False, antialias=True)
+        return self.describe(image.to(self.device, torch.float32)).cpu()
+
+    def describe(self, image: Tensor, grid: Optional[tuple[int, int]] = None) -> Tensor:
+        """Differentiable `extract` on the image's device: [H, W, 3] -> [rows, columns, 36].
+
+        `grid` (rows, columns) forces the map's shape (the image is resized to grid * CELL pixels); by default
+        it is `grid_shape(H, W)`. Registration uses it to describe renders whose size differs from the photo's.
+        """
+        pixels = image.permute(2, 0, 1)[None]
+        rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
+        pixels = F.interpolate(pixels, size=(rows * CELL, columns * CELL), mode="bilinear", align_corners=False, antialias=True)
         log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
-        gradients = F.conv2d(F.pad(log_channels, (1, 1, 1, 1), mode="replicate"), self.kernels)  # [3, 2, S, S]
+        gradients = F.conv2d(F.pad(log_channels, (1, 1, 1, 1), mode="replicate"), self.kernels.to(pixels.device))  # [3, 2, S, S]
         histogram = _soft_orientation_histogram(gradients[:, 0], gradients[:, 1]).sum(0)  # [B, S, S]
         cells = F.avg_pool2d(histogram[None], CELL)  # [1, B, G, G]
         blocks = []
@@ -68,7 +78,7 @@ class OfflineTeacher:
             floor = 0.1 * norm.flatten().median().clamp(min=1e-6)
             blocks.append(pooled / torch.sqrt(norm**2 + floor**2))
         features = torch.cat(blocks, dim=1) / math.sqrt(len(POOLING_CELLS))
-        return features[0].permute(1, 2, 0).contiguous().cpu()
+        return features[0].permute(1, 2, 0)
 
 
 def _soft_orientation_histogram(gx: Tensor, gy: Tensor) -> Tensor:
@@ -80,15 +90,17 @@ def _soft_orientation_histogram(gx: Tensor, gy: Tensor) -> Tensor:
     Returns:
         [C, ORIENTATIONS, S, S].
     """
-    magnitude = torch.sqrt(gx**2 + gy**2)
-    position = (torch.atan2(gy, gx) % (2 * math.pi)) / (2 * math.pi) * ORIENTATIONS
-    lower = torch.floor(position)
+    # The tiny offsets keep the gradients finite where the image is flat (sqrt and atan2 at 0); they change
+    # the descriptor by less than float32 resolution.
+    magnitude = torch.sqrt(gx**2 + gy**2 + TINY**2)
+    position = (torch.atan2(gy, gx + TINY) % (2 * math.pi)) / (2 * math.pi) * ORIENTATIONS
+    lower = torch.floor(position.detach())
     upper_weight = position - lower
     lower_bin = lower.long() % ORIENTATIONS
     upper_bin = (lower_bin + 1) % ORIENTATIONS
-    histogram = torch.zeros(gx.shape[0], ORIENTATIONS, *gx.shape[1:], device=gx.device)
-    histogram.scatter_add_(1, lower_bin[:, None], (magnitude * (1 - upper_weight))[:, None])
-    histogram.scatter_add_(1, upper_bin[:, None], (magnitude * upper_weight)[:, None])
+    histogram = torch.zeros(gx.shape[0], ORIENTATIONS, *gx.shape[1:], device=gx.device, dtype=gx.dtype)
+    histogram = histogram.scatter_add(1, lower_bin[:, None], (magnitude * (1 - upper_weight))[:, None])
+    histogram = histogram.scatter_add(1, upper_bin[:, None], (magnitude * upper_weight)[:, None])
     return histogram
 
 

@@ -1,9 +1,19 @@
 """The registration loop: optimise one Sim(3) of a whole meta-image against the frozen reference model.
 
 Per step: transform the photos' cameras by T = U(delta) o T0 (dataparser frame), render the reference
-model's decoded features (or colours) from them, resize to the teacher grid, compare with the photos'
-teacher maps (L1 or L2 per image), aggregate robustly (LTS by default), and take an Adam step on the 7
-parameters delta. Everything the caller passes in and gets back is in the reference *world* frame.
+model from them, compare with the photos (L1 or L2 per image), aggregate robustly (LTS by default), and
+take an Adam step on the 7 parameters delta. Everything the caller passes in and gets back is in the
+reference *world* frame.
+
+What is compared (`objective`):
+- `features` (the paper): the model's decoded feature field, resized to the teacher grid, against the
+  photos' teacher maps.
+- `teacher-on-render`: the teacher applied (with gradients) to the model's rendered RGB, against the same
+  teacher maps. Same appearance invariance, but as sharp as the colour model: a distilled feature field
+  is a view-independent, blurred fit of the teacher, and with the weight-free offline teacher that blur
+  flattens the objective around the answer. Practical for cheap teachers (offline); with DINOv2 every
+  step runs the ViT on every render.
+- `photometric`: RGB against the photos' RGB on the teacher grid.
 """
 
 from __future__ import annotations
@@ -18,13 +28,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.features import FeatureCache, build_teacher, extract_all
+from sg_nerfstudio.features import FeatureCache, Teacher, TeacherConfig, build_teacher, extract_all
 from sg_nerfstudio.registration.meta_image import MetaImage
 from sg_nerfstudio.registration.reference import ReferenceModel, resize_to
 from sg_nerfstudio.registration.robust import LossKind, Robust, RobustAggregator, per_image_loss
 from sg_nerfstudio.registration.sim3 import decompose, invert, update_matrix
 
 Array = np.ndarray
+ObjectiveKind = Literal["features", "teacher-on-render", "photometric"]
 
 
 class InitialisationError(InputError):
@@ -42,8 +53,9 @@ class RegistrationSettings:
     lr_final: Optional[float] = None
     """Exponential decay of the learning rate to this value at the last step; None keeps it constant (paper)."""
     adam_eps: float = 1e-8
-    objective: Literal["features", "photometric"] = "features"
-    """Match decoded features against the photos' teacher maps (paper) or colours against the photos."""
+    objective: ObjectiveKind = "features"
+    """features: decoded feature field vs the photos' teacher maps (paper); teacher-on-render: the teacher
+    applied to the rendered RGB vs the same maps; photometric: colours vs the photos."""
     loss: LossKind = "l1"
     robust: Robust = "lts"
     """lts (paper), fixed-lts, irls or none."""
@@ -54,8 +66,9 @@ class RegistrationSettings:
     teacher_input_size: Optional[int] = None
     """Teacher input size for the photos; default: the one the reference model was trained with."""
     render_scale: float = 2.0
-    """Long side of the renders as a multiple of the teacher grid (the renders are resized to the grid);
-    the paper renders at full resolution, 1-2 keeps CPU cost low."""
+    """Long side of the renders as a multiple of the teacher grid (the paper renders at full resolution;
+    1-2 keeps CPU cost low for `features`, whose renders are resized to the grid). Never more than the
+    photo's own long side, and for teacher-on-render never more than the teacher's input size."""
     near_plane: float = 0.7
     """Near plane in dataparser units against floaters (paper: 0.7); lowered automatically to half the
     nearest sparse-point depth of the meta-image so it never cuts away what the photos see."""
@@ -91,10 +104,25 @@ class RegistrationResult:
     coverage: Array  # [P] fraction of rendered pixels covered by the model at the initial transform
 
 
+def registration_teacher(reference: ReferenceModel, settings: RegistrationSettings) -> tuple[TeacherConfig, Teacher]:
+    """The reference model's teacher, at the input size the settings ask for."""
+    config = replace(reference.teacher, input_size=settings.teacher_input_size or reference.teacher.input_size)
+    return config, build_teacher(config)
+
+
+def render_size(width: int, height: int, settings: RegistrationSettings, teacher: Teacher) -> tuple[int, int]:
+    """(width, height) the model renders a photo of this size at: long side render_scale x teacher grid,
+    capped at the photo's long side (and at the teacher's input size for teacher-on-render)."""
+    long_side = min(settings.render_scale * teacher.grid_size, max(width, height))
+    if settings.objective == "teacher-on-render":
+        long_side = min(long_side, teacher.input_size)
+    factor = max(8, round(long_side)) / max(width, height)
+    return max(8, round(width * factor)), max(8, round(height * factor))
+
+
 def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings) -> list[PreparedPhoto]:
     """Undistort each photo, compute (or load cached) teacher maps, and set up its render camera."""
-    teacher_config = replace(reference.teacher, input_size=settings.teacher_input_size or reference.teacher.input_size)
-    teacher = build_teacher(teacher_config)
+    teacher_config, teacher = registration_teacher(reference, settings)
     images = [None] * len(meta.photos)
 
     def load(index: int) -> Tensor:
@@ -102,20 +130,17 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
             images[index] = torch.from_numpy(meta.photos[index].load_undistorted())
         return images[index]
 
-    grid = teacher.grid_size  # cells along the long side
-    if settings.objective == "features":
-        targets = extract_all(load, len(meta.photos), teacher, FeatureCache(teacher_config.cache_dir), f"Teacher features ({meta.name})")
-    else:
+    if settings.objective == "photometric":
         targets = [
             F.interpolate(load(i).permute(2, 0, 1)[None].float() / 255.0, size=teacher.grid_shape(*load(i).shape[:2]), mode="area")[0].permute(1, 2, 0)
             for i in range(len(meta.photos))
         ]
-    long_side = max(8, round(settings.render_scale * grid))
+    else:
+        targets = extract_all(load, len(meta.photos), teacher, FeatureCache(teacher_config.cache_dir), f"Teacher features ({meta.name})")
     prepared = []
     for photo, target in zip(meta.photos, targets):
         width, height = photo.camera.width, photo.camera.height
-        factor = long_side / max(width, height)
-        render_w, render_h = max(8, round(width * factor)), max(8, round(height * factor))
+        render_w, render_h = render_size(width, height, settings, teacher)
         K = photo.pinhole_intrinsics().copy()
         K[0] *= render_w / width
         K[1] *= render_h / height
@@ -146,6 +171,7 @@ class Objective:
 
     def __init__(self, reference: ReferenceModel, photos: list[PreparedPhoto], settings: RegistrationSettings, near_plane: float):
         self.reference, self.photos, self.settings, self.near_plane = reference, photos, settings, near_plane
+        self.teacher = registration_teacher(reference, settings)[1] if settings.objective == "teacher-on-render" else None
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
 
     def __call__(self, matrix: Tensor, scale: Tensor, indices) -> tuple[Tensor, Tensor]:
@@ -156,15 +182,22 @@ class Objective:
             start = time.perf_counter()
             viewmat = camera_viewmat(photo.cam_from_meta, matrix[:3, :3], matrix[:3, 3], scale)
             rendered, alpha = self.reference.render(
-                viewmat[None], photo.K[None], photo.width, photo.height, self.near_plane, self.settings.objective, self.settings.backend
+                viewmat[None], photo.K[None], photo.width, photo.height, self.near_plane,
+                "features" if self.settings.objective == "features" else "photometric", self.settings.backend,
             )
             middle = time.perf_counter()
-            on_grid = resize_to(rendered, tuple(photo.target.shape[:2]))
-            losses.append(per_image_loss(on_grid, photo.target[None], self.settings.loss)[0])
+            losses.append(per_image_loss(self.on_target_grid(rendered, photo.target), photo.target[None], self.settings.loss)[0])
             coverage.append(alpha.detach().mean())
             self.timings["render"] += middle - start
             self.timings["loss"] += time.perf_counter() - middle
         return torch.stack(losses), torch.stack(coverage)
+
+    def on_target_grid(self, rendered: Tensor, target: Tensor) -> Tensor:
+        """[1, H, W, C] render -> [1, rows, columns, D] comparable with the target map [rows, columns, D]."""
+        grid = tuple(target.shape[:2])
+        if self.teacher is None:
+            return resize_to(rendered, grid)
+        return self.teacher.describe(rendered[0], grid).to(target.device)[None]
 
 
 def effective_near_plane(meta: MetaImage, initial_ns: Array, requested: float) -> float:

@@ -1,12 +1,18 @@
 """`ns-register-meta`: ground meta-images in a frozen sg-feature-splat reference model.
 
     ns-register-meta --load-config outputs/.../config.yml --meta-image scene/meta/front \\
-        --output-dir registrations [--init identity|init.json] [--gt scene/meta/front/gt_transform.json] \\
-        [--config configs/register/fast-cpu.yaml] [--steps 400 ...]
+        --output-dir registrations [--init identity|colmap|generalized|init.json] \\
+        [--gt scene/meta/front/gt_transform.json] [--config configs/register/fast-cpu.yaml] [--steps 400 ...]
 
 `--config` reads a YAML preset of the registration settings (configs/register/: paper.yaml, fast-cpu.yaml);
 flags given after it override single settings. `--init` and `--gt` take one value per meta-image (a single
 `--init` applies to all). Results go to `<output-dir>/<meta-image name>/` (see registration/outputs.py).
+
+`--init colmap` / `--init generalized` compute the start with SIFT + pycolmap against the reference's own
+COLMAP model and images (sg_nerfstudio/initialisers; by default the ones the trained config's dataparser
+read, else --reference-colmap / --reference-images). When an initialiser fails for a meta-image, that is
+reported in one sentence and no result directory is written for it; the other meta-images are still
+registered, and the exit status is 1 only when no meta-image was registered.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from rich.table import Table
 from rich.text import Text
 
 from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress
 from sg_nerfstudio.registration.meta_image import load_meta_image
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.optimize import InitialisationError, RegistrationSettings, prepare_photos, register
@@ -51,8 +58,20 @@ class RegisterMetaArgs:
     output_dir: Path
     """Results go to <output-dir>/<meta-image directory name>/."""
     init: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
-    """Initial transform meta -> reference world: 'identity' (the default) or a JSON file with a 4x4
-    "matrix" (transform.json / gt_transform.json format); once for all meta-images or once per meta-image."""
+    """Initial transform meta -> reference world: 'identity' (the default), 'colmap' (photos registered into
+    the reference COLMAP model, Sim(3) from their centres), 'generalized' (the meta-image as one
+    generalized camera, our gDLS+++ analogue), or a JSON file with a 4x4 "matrix" (transform.json /
+    gt_transform.json format); once for all meta-images or once per meta-image."""
+    reference_colmap: Optional[Path] = None
+    """For --init colmap/generalized: the reference's COLMAP model (default: the trained config's dataparser
+    data / colmap_path)."""
+    reference_images: Optional[Path] = None
+    """For --init colmap/generalized: the reference's images (default: the dataparser's data / images_path)."""
+    init_max_error: Optional[float] = None
+    """For --init colmap: RANSAC inlier distance (reference world units) of the Sim(3) from camera centres;
+    default 5% of the median distance of the reference cameras to their centroid."""
+    init_cache_dir: Optional[Path] = None
+    """Cache of SIFT features and the reference's SIFT triangulation (default: ~/.cache/sg_nerfstudio/initialisers)."""
     gt: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction] = ()
     """Ground-truth transform (gt_transform.json) to report ΔR / ΔT; once per meta-image, in order."""
     settings: RegistrationSettings = field(default_factory=RegistrationSettings)
@@ -62,12 +81,15 @@ class RegisterMetaArgs:
     """Where the reference model is loaded and rendered."""
 
 
-def read_initial_transform(value: str) -> np.ndarray:
+def read_initial_transform(value: str) -> Optional[np.ndarray]:
+    """The matrix for 'identity' or a JSON file; None for an initialiser name (computed later)."""
+    if value in METHODS:
+        return None
     if value == "identity":
         return np.eye(4)
     path = Path(value)
     if not path.is_file():
-        raise InitialisationError(f"Initial transform file {path} does not exist; expected 'identity' or a JSON file.")
+        raise InitialisationError(f"Initial transform file {path} does not exist; expected 'identity', 'colmap', 'generalized' or a JSON file.")
     return read_transform_json(path, "Initial transform")
 
 
@@ -124,7 +146,8 @@ def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
     names = [meta.name for meta in metas]
     if len(set(names)) != len(names):
         raise ArgumentError(f"Meta-image directories must have distinct names (results go to <output-dir>/<name>), got {names}.")
-    inits = [read_initial_transform(v) for v in per_meta_values(args.init or ("identity",), len(metas), "--init", allow_single=True)]
+    init_values = per_meta_values(args.init or ("identity",), len(metas), "--init", allow_single=True)
+    inits = [read_initial_transform(v) for v in init_values]
     gts = [read_transform_json(p, "Ground truth") for p in per_meta_values(args.gt, len(metas), "--gt", allow_single=False)] if args.gt else [None] * len(metas)
     for meta in metas:
         target = args.output_dir / meta.name
@@ -133,10 +156,21 @@ def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
         if meta.unlisted:
             console.print(f"[yellow]{meta.name}: {len(meta.unlisted)} files in images/ are not in the COLMAP model and are ignored: {', '.join(meta.unlisted[:5])}[/yellow]")
 
+    initialiser = None
+    if any(value in METHODS for value in init_values):
+        source = resolve_reference_source(args.load_config, args.reference_colmap, args.reference_images)
+        initialiser = Initialiser(source, InitialiserSettings(alignment_max_error=args.init_max_error, cache_dir=args.init_cache_dir))
+        initialiser.check_reference()
+
     device = "cuda" if args.device == "auto" and _cuda() else ("cpu" if args.device == "auto" else args.device)
     reference = load_reference(args.load_config, device=device)
     summaries = []
-    for meta, initial, gt in zip(metas, inits, gts):
+    for meta, initial, value, gt in zip(metas, inits, init_values, gts):
+        if initial is None:
+            initial = compute_initial_transform(initialiser, meta, value, console)
+            if initial is None:
+                summaries.append({"meta": meta, "result": None, "errors": None, "target": None})
+                continue
         photos = prepare_photos(reference, meta, args.settings)
         with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True) as progress:
             task = progress.add_task(f"Registering {meta.name}", total=args.settings.steps)
@@ -151,12 +185,27 @@ def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
     return summaries
 
 
+def compute_initial_transform(initialiser: Initialiser, meta, method: str, console: Console) -> Optional[np.ndarray]:
+    """The initialiser's transform, or None after printing its one-sentence failure."""
+    with rich_progress(console) as progress:
+        initialiser.progress = progress
+        outcome = initialiser(meta, method)
+    if outcome.failure:
+        Console(stderr=True).print(Text(outcome.failure.rstrip(".") + "; no result is written for it.", style="red"), soft_wrap=True)
+        return None
+    console.print(f"{meta.name}: '{method}' initialisation from {len(outcome.agreeing_photos)} agreeing photos in {outcome.wall_time_s:.1f} s.")
+    return outcome.transform
+
+
 def print_summary(summaries: list[dict], console: Console) -> None:
     table = Table(title="ns-register-meta")
     for column in ("meta-image", "photos", "ΔR before (°)", "ΔT before", "ΔR after (°)", "ΔT after", "accurate", "outlier", "trimmed loss", "time (s)"):
         table.add_column(column, justify="right")
     for entry in summaries:
         meta, result, errors = entry["meta"], entry["result"], entry["errors"]
+        if result is None:
+            table.add_row(meta.name, str(len(meta.photos)), "initialisation failed", *[""] * 7)
+            continue
         if errors:
             before, after = errors["before"], errors["after"]
             cells = [f"{before.rotation_deg:.2f}", f"{before.translation:.3f}", f"{after.rotation_deg:.2f}", f"{after.translation:.3f}",
@@ -166,7 +215,8 @@ def print_summary(summaries: list[dict], console: Console) -> None:
         table.add_row(meta.name, str(len(meta.photos)), *cells, f"{result.final_trimmed_loss:.4f}", f"{result.wall_time_s:.1f}")
     console.print(table)
     for entry in summaries:
-        console.print(f"{entry['meta'].name}: transform, aligned model and report in {entry['target']}", soft_wrap=True)
+        if entry["target"] is not None:
+            console.print(f"{entry['meta'].name}: transform, aligned model and report in {entry['target']}", soft_wrap=True)
 
 
 def _cuda() -> bool:
@@ -179,11 +229,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     console = Console()
     try:
         args = parse_args(list(sys.argv[1:] if argv is None else argv))
-        run(args, console)
+        summaries = run(args, console)
     except (InputError, FloatingPointError) as error:
         Console(stderr=True).print(Text(str(error), style="red"), soft_wrap=True)
         return 1
-    return 0
+    return 0 if any(entry["result"] is not None for entry in summaries) else 1
 
 
 def entrypoint() -> None:

@@ -1,0 +1,269 @@
+"""Pose and similarity estimation with pycolmap: one photo in the reference, the meta-image's Sim(3) from
+registered camera centres, and the meta-image as one generalized camera (our analogue of gDLS+++).
+
+Frames: `cam_from_reference` / `cam_from_meta` are [3, 4] world-to-camera (OpenCV) matrices; a Sim(3)
+`T` [4, 4] maps meta-image coordinates to the reference world, x_ref = s R x_meta + t. Pixel coordinates
+follow COLMAP (top-left pixel centre at 0.5) and go to the estimators with each photo's real pycolmap
+Camera, so distortion is handled by pycolmap.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import pycolmap
+
+from sg_nerfstudio.registration.sim3 import sim3_matrix
+
+Array = np.ndarray
+
+
+@dataclass(frozen=True)
+class AbsolutePoseSettings:
+    """COLMAP mapper's defaults for registering an image from 2D-3D correspondences."""
+
+    max_error: float = 12.0
+    """RANSAC reprojection threshold, pixels."""
+    min_inliers: int = 30
+    min_inlier_ratio: float = 0.25
+    seed: int = 0
+
+
+@dataclass
+class Observations:
+    """2D-3D correspondences of one photo with the reference.
+
+    Attributes:
+        camera: the photo's pycolmap camera (its real model and parameters).
+        cam_from_meta: [3, 4] the photo's pose in the meta-image frame.
+        points2D: [M, 2] pixels in the photo.
+        points3D: [M, 3] reference world points.
+    """
+
+    name: str
+    camera: pycolmap.Camera
+    cam_from_meta: Array
+    points2D: Array
+    points3D: Array
+
+
+@dataclass
+class PhotoPose:
+    name: str
+    cam_from_reference: Optional[Array]
+    """[3, 4], None when the photo could not be registered."""
+    num_inliers: int
+    num_correspondences: int
+
+    @property
+    def registered(self) -> bool:
+        return self.cam_from_reference is not None
+
+
+def _ransac(max_error: float, seed: int, max_trials: int = 10000) -> pycolmap.RANSACOptions:
+    options = pycolmap.RANSACOptions()
+    options.max_error = max_error
+    options.random_seed = seed
+    options.max_num_trials = max_trials
+    return options
+
+
+def register_photo(observations: Observations, settings: AbsolutePoseSettings) -> PhotoPose:
+    """Absolute pose of one photo in the reference world (LO-RANSAC P3P + refinement, intrinsics fixed)."""
+    count = len(observations.points2D)
+    failed = PhotoPose(observations.name, None, 0, count)
+    if count < max(settings.min_inliers, 4):
+        return failed
+    estimation = pycolmap.AbsolutePoseEstimationOptions()
+    estimation.ransac = _ransac(settings.max_error, settings.seed)
+    estimation.ransac.min_inlier_ratio = 0.05
+    result = pycolmap.estimate_and_refine_absolute_pose(
+        observations.points2D, observations.points3D, observations.camera, estimation, pycolmap.AbsolutePoseRefinementOptions()
+    )
+    if result is None:
+        return failed
+    inliers = int(result["num_inliers"])
+    if inliers < settings.min_inliers or inliers < settings.min_inlier_ratio * count:
+        return PhotoPose(observations.name, None, inliers, count)
+    return PhotoPose(observations.name, result["cam_from_world"].matrix(), inliers, count)
+
+
+def centre_of(cam_from_world: Array) -> Array:
+    """[3] camera centre of a [3, 4] world-to-camera matrix, in that world."""
+    return -cam_from_world[:, :3].T @ cam_from_world[:, 3]
+
+
+def similarity_from_centres(meta_centres: Array, reference_centres: Array, max_error: float, seed: int = 0) -> Optional[tuple[Array, Array]]:
+    """Robust Sim(3) meta -> reference from corresponding camera centres (COLMAP's model_aligner idea).
+
+    Args:
+        meta_centres, reference_centres: [P, 3], P >= 3.
+        max_error: RANSAC inlier distance, reference units.
+
+    Returns:
+        (T [4, 4], inlier mask [P]) or None when no transform with >= 3 inliers exists.
+    """
+    if len(meta_centres) < 3:
+        return None
+    estimate = pycolmap.estimate_sim3d_robust(meta_centres, reference_centres, _ransac(max_error, seed))
+    if estimate is None:
+        return None
+    similarity = estimate["tgt_from_src"]
+    matrix = np.vstack([similarity.matrix(), [0.0, 0.0, 0.0, 1.0]])
+    inliers = np.asarray(estimate["inlier_mask"], dtype=bool)
+    if inliers.sum() < 3 or not np.isfinite(matrix).all() or similarity.scale <= 0:
+        return None
+    return matrix, inliers
+
+
+@dataclass(frozen=True)
+class GeneralizedSettings:
+    max_error: float = 12.0
+    """RANSAC reprojection threshold, pixels."""
+    min_inliers: int = 30
+    """Fewest pooled inlier correspondences for a transform."""
+    min_photos: int = 2
+    """Fewest photos contributing inliers (one photo does not constrain the scale)."""
+    scale_range_decades: float = 2.0
+    """The scale is searched over this many decades either side of a first guess."""
+    scale_steps_per_decade: int = 4
+    search_trials: int = 1000
+    """RANSAC trials per scale while searching (the final estimate at the chosen scale uses 10000)."""
+    seed: int = 0
+
+
+@dataclass
+class GeneralizedPose:
+    transform: Array  # [4, 4] meta -> reference
+    num_inliers: int
+    inliers_per_photo: dict[str, int]
+
+
+class _GeneralizedProblem:
+    """Pooled correspondences of the photos, and the rig of the meta-image at a given scale.
+
+    Attributes:
+        points2D: [M, 2] pixels; points3D: [M, 3] reference world; camera_index: [M] photo of each.
+    """
+
+    def __init__(self, photos: list[Observations], settings: GeneralizedSettings):
+        self.photos, self.settings = photos, settings
+        self.points2D = np.concatenate([p.points2D for p in photos])
+        self.points3D = np.concatenate([p.points3D for p in photos])
+        self.camera_index = np.concatenate([np.full(len(p.points2D), i) for i, p in enumerate(photos)])
+        self.cameras = [p.camera for p in photos]
+        self.meta_centroid = np.mean([centre_of(p.cam_from_meta) for p in photos], axis=0)  # [3] meta frame
+
+    def rig(self, scale: float) -> list:
+        """cam_from_rig per photo when the rig frame is the meta frame scaled by `scale`."""
+        return [pycolmap.Rigid3d(pycolmap.Rotation3d(p.cam_from_meta[:, :3]), scale * p.cam_from_meta[:, 3]) for p in self.photos]
+
+    def ransac(self, scale: float, trials: int, refine: bool):
+        """(rig_from_world [3, 4], inlier mask [M]) or None."""
+        options = _ransac(self.settings.max_error, self.settings.seed, trials)
+        estimator = pycolmap.estimate_and_refine_generalized_absolute_pose if refine else pycolmap.estimate_generalized_absolute_pose
+        result = estimator(self.points2D, self.points3D, self.camera_index.tolist(), self.rig(scale), self.cameras, options)
+        if result is None:
+            return None
+        return result["rig_from_world"].matrix(), np.asarray(result["inlier_mask"], dtype=bool)
+
+    def score(self, scale: float) -> tuple[int, float]:
+        """(inliers, -mean reprojection error) of a quick RANSAC at `scale`: larger is better."""
+        found = self.ransac(scale, self.settings.search_trials, refine=False)
+        if found is None:
+            return -1, -math.inf
+        rig_from_world, mask = found
+        return int(mask.sum()), -self.error(rig_from_world, scale, mask)
+
+    def refine_at(self, scale: float, rig_from_world: Array, mask: Array) -> Array:
+        """rig_from_world [3, 4] refined (inliers fixed) at another scale, starting from `rig_from_world`."""
+        start = pycolmap.Rigid3d(rig_from_world)
+        result = pycolmap.refine_generalized_absolute_pose(
+            start, self.points2D, self.points3D, mask, self.camera_index.tolist(), self.rig(scale), self.cameras
+        )
+        return rig_from_world if result is None else result["rig_from_world"].matrix()
+
+    def error(self, rig_from_world: Array, scale: float, mask: Array) -> float:
+        return _mean_reprojection_error(rig_from_world, self.rig(scale), self.photos, self.points2D, self.points3D, self.camera_index, mask)
+
+
+def generalized_similarity(photos: list[Observations], meta_depth: float, settings: GeneralizedSettings) -> Optional[GeneralizedPose]:
+    """The meta-image as one generalized camera (rig = meta frame, cameras = the photos).
+
+    pycolmap's generalized absolute pose is rigid (6 DoF), so the scale is found around it: for a scale s
+    the rig holds the photos with cam_from_rig = (R_c, s t_c) (the meta frame scaled by s). A log-spaced
+    grid around the first guess `points' spread in the reference / meta_depth` picks the scale whose
+    pose has most inliers (ties: lowest reprojection error), a finer grid around it does the same, then
+    the pose is estimated and refined there, and the scale is refined continuously by minimising the
+    inliers' reprojection error (pose re-refined at each trial scale). gDLS+++ solves the 7 DoF jointly;
+    this is the same objective with pycolmap's building blocks.
+
+    Args:
+        photos: per-photo correspondences (photos without any are skipped).
+        meta_depth: typical depth of the scene in the photos, meta units (median sparse-point depth).
+
+    Returns:
+        the transform, or None when fewer than `min_inliers` correspondences or `min_photos` photos agree.
+    """
+    used = [p for p in photos if len(p.points2D)]
+    if sum(len(p.points2D) for p in used) < max(settings.min_inliers, 6) or len(used) < settings.min_photos:
+        return None
+    problem = _GeneralizedProblem(used, settings)
+    spread = float(np.median(np.linalg.norm(problem.points3D - np.median(problem.points3D, axis=0), axis=1)))
+    guess = max(spread, 1e-9) / max(meta_depth, 1e-9)
+    step = 1.0 / settings.scale_steps_per_decade
+    coarse = guess * 10.0 ** np.arange(-settings.scale_range_decades, settings.scale_range_decades + step / 2, step)
+    scale = float(max(coarse, key=lambda s: problem.score(float(s))))
+    scale = float(max(scale * 10.0 ** np.linspace(-step, step, 9), key=lambda s: problem.score(float(s))))
+    found = problem.ransac(scale, 10000, refine=True)
+    if found is None:
+        return None
+    rig_from_world, mask = found
+    per_photo = {p.name: int(mask[problem.camera_index == i].sum()) for i, p in enumerate(used)}
+    if mask.sum() < settings.min_inliers or sum(v > 0 for v in per_photo.values()) < settings.min_photos:
+        return None
+    scale, rig_from_world = _refine_scale(problem, scale, rig_from_world, mask, step / 4)
+    rotation = rig_from_world[:, :3].T
+    transform = sim3_matrix(scale, rotation, -rotation @ rig_from_world[:, 3])
+    return GeneralizedPose(transform, int(mask.sum()), per_photo)
+
+
+def _refine_scale(problem: _GeneralizedProblem, scale: float, rig_from_world: Array, mask: Array, decades: float) -> tuple[float, Array]:
+    """(scale, rig_from_world) minimising the inliers' mean reprojection error within +-`decades`."""
+    from scipy.optimize import minimize_scalar
+
+    def pose_at(log_scale: float) -> Array:
+        start = rig_from_world.copy()
+        start[:, 3] += (math.exp(log_scale) - scale) * problem.meta_centroid  # keeps the photos' centroid in place
+        return problem.refine_at(math.exp(log_scale), start, mask)
+
+    def cost(log_scale: float) -> float:
+        return problem.error(pose_at(log_scale), math.exp(log_scale), mask)
+
+    centre, width = math.log(scale), decades * math.log(10.0)
+    best = minimize_scalar(cost, bounds=(centre - width, centre + width), method="bounded", options={"xatol": 1e-4})
+    if not best.success or cost(best.x) > cost(centre):
+        return scale, rig_from_world
+    return math.exp(best.x), pose_at(best.x)
+
+
+def _mean_reprojection_error(rig_from_world: Array, rig: list, photos: list[Observations], points2D: Array, points3D: Array, camera_index: Array, mask: Array) -> float:
+    """Mean pixel error of the inlier correspondences under a generalized pose."""
+    if not mask.any():
+        return math.inf
+    errors = []
+    world_h = np.hstack([points3D, np.ones((len(points3D), 1))])
+    for i, photo in enumerate(photos):
+        chosen = mask & (camera_index == i)
+        if not chosen.any():
+            continue
+        cam_from_rig = rig[i].matrix()
+        cam_from_world = cam_from_rig[:, :3] @ rig_from_world
+        cam_from_world[:, 3] += cam_from_rig[:, 3]
+        in_camera = world_h[chosen] @ cam_from_world.T
+        projected = photo.camera.img_from_cam(in_camera, check_cheirality=False)
+        errors.append(np.linalg.norm(projected - points2D[chosen], axis=1))
+    return float(np.mean(np.concatenate(errors)))

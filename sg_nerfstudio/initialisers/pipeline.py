@@ -1,0 +1,290 @@
+"""Initial transforms meta-image -> reference world from SIFT + pycolmap (paper supplement, "Initialization").
+
+    colmap       every photo is registered on its own into the reference (SIFT matches against the
+                 reference images, 2D-3D through the reference's triangulated SIFT points, absolute pose
+                 with the reference fixed), then the Sim(3) comes from the registered photos' camera
+                 centres with RANSAC (COLMAP's model_aligner idea; the paper uses max error 3 in the
+                 metres of its GPS-scaled references). Fewer than 3 agreeing photos is a failure.
+    generalized  the photos' 2D-3D correspondences are pooled and the meta-image is solved as one
+                 generalized camera (estimate.generalized_similarity): our analogue of gDLS+++.
+
+A failure is a result with `failure` set to one sentence and no transform, never an exception; bad
+inputs (missing reference model or images) raise InputError subclasses.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Literal, Optional
+
+import numpy as np
+import pycolmap
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from sg_nerfstudio.initialisers.estimate import (
+    AbsolutePoseSettings,
+    GeneralizedSettings,
+    Observations,
+    PhotoPose,
+    centre_of,
+    generalized_similarity,
+    register_photo,
+    similarity_from_centres,
+)
+from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, SiftSettings, VerifiedMatcher, default_cache_dir
+from sg_nerfstudio.initialisers.reference_cloud import (
+    PairingSettings,
+    Progress as ProgressFactory,
+    ReferenceCloud,
+    ReferenceSource,
+    ReferenceSourceError,
+    build_reference_cloud,
+)
+from sg_nerfstudio.initialisers.retrieval import VisualWordIndex
+from sg_nerfstudio.registration.meta_image import MetaImage
+
+Array = np.ndarray
+Method = Literal["colmap", "generalized"]
+METHODS: tuple[str, ...] = ("colmap", "generalized")
+
+
+@dataclass
+class InitialiserSettings:
+    """Settings of the SIFT + pycolmap initialisers (COLMAP's defaults where COLMAP has one)."""
+
+    alignment_max_error: Optional[float] = None
+    """RANSAC inlier distance of the camera-centre Sim(3), reference world units. Default: 5% of the median
+    distance of the reference cameras to their centroid (the reference's scale is arbitrary; the paper's 3
+    was metres of GPS-scaled references)."""
+    min_registered_photos: int = 3
+    """colmap: fewest photos that must register and agree with the Sim(3)."""
+    retrieval_count: int = 30
+    """Reference images a photo is matched against when the reference has more than `exhaustive_limit`."""
+    cache_dir: Optional[Path] = None
+    """Where SIFT features and the reference's SIFT triangulation are cached
+    (default: $XDG_CACHE_HOME/sg_nerfstudio/initialisers)."""
+    sift: SiftSettings = field(default_factory=SiftSettings)
+    matching: MatchSettings = field(default_factory=MatchSettings)
+    pairing: PairingSettings = field(default_factory=PairingSettings)
+    absolute_pose: AbsolutePoseSettings = field(default_factory=AbsolutePoseSettings)
+    generalized: GeneralizedSettings = field(default_factory=GeneralizedSettings)
+
+    def resolved_cache_dir(self) -> Path:
+        return Path(self.cache_dir) if self.cache_dir is not None else default_cache_dir()
+
+
+@dataclass
+class InitResult:
+    """Outcome of one initialiser on one meta-image.
+
+    Attributes:
+        transform: [4, 4] Sim(3) meta -> reference world, None on failure.
+        failure: one sentence when the initialiser could not produce a transform.
+        photos: per photo, its own registration (colmap) or inlier count (generalized).
+        agreeing_photos: photos whose registered centre fits the Sim(3) (colmap) or that contribute
+            inliers to the generalized pose.
+    """
+
+    method: str
+    meta_name: str
+    transform: Optional[Array]
+    failure: Optional[str]
+    photos: list[PhotoPose]
+    agreeing_photos: list[str]
+    wall_time_s: float
+
+    @property
+    def succeeded(self) -> bool:
+        return self.transform is not None
+
+    def as_record(self) -> dict:
+        return {
+            "method": self.method,
+            "meta_image": self.meta_name,
+            "succeeded": self.succeeded,
+            "failure": self.failure,
+            "wall_time_s": round(self.wall_time_s, 3),
+            "agreeing_photos": self.agreeing_photos,
+            "photos": [
+                {"name": p.name, "registered": p.registered, "inliers": p.num_inliers, "correspondences": p.num_correspondences}
+                for p in self.photos
+            ],
+        }
+
+
+def reference_source_from_config(config_path: Path) -> ReferenceSource:
+    """The COLMAP model and images a trained sg-feature-splat was trained on (its dataparser's paths)."""
+    from sg_nerfstudio.registration.reference import read_trainer_config
+
+    config = read_trainer_config(config_path)
+    datamanager = config.pipeline.datamanager
+    parser = datamanager.dataparser
+    data = datamanager.data or getattr(parser, "data", None)
+    if data is None or not hasattr(parser, "colmap_path") or not hasattr(parser, "images_path"):
+        raise ReferenceSourceError(
+            f"Config {config_path} does not use nerfstudio's COLMAP dataparser; pass --reference-colmap and --reference-images."
+        )
+    data = Path(data)
+    colmap_path = Path(parser.colmap_path)
+    images_path = Path(parser.images_path)
+    return ReferenceSource(colmap_path if colmap_path.is_absolute() else data / colmap_path,
+                           images_path if images_path.is_absolute() else data / images_path)
+
+
+def resolve_reference_source(config_path: Optional[Path], colmap_path: Optional[Path], images_path: Optional[Path]) -> ReferenceSource:
+    """Explicit paths win; a missing one is taken from the trained config's dataparser."""
+    if colmap_path is not None and images_path is not None:
+        return ReferenceSource(Path(colmap_path), Path(images_path))
+    if config_path is None:
+        raise ReferenceSourceError("The reference is unknown; pass --load-config, or both --reference-colmap and --reference-images.")
+    from_config = reference_source_from_config(config_path)
+    return ReferenceSource(Path(colmap_path) if colmap_path else from_config.colmap_path,
+                           Path(images_path) if images_path else from_config.images_path)
+
+
+def silent_progress(description: str, total: int):
+    """A progress factory that draws nothing."""
+    return lambda: None
+
+
+class Initialiser:
+    """Builds the reference's SIFT cloud once, then initialises any number of meta-images.
+
+    `progress` (description, total) -> advance() reports each stage; replace it between calls to draw
+    into another display."""
+
+    def __init__(self, source: ReferenceSource, settings: InitialiserSettings, progress: ProgressFactory = silent_progress):
+        self.source = source
+        self.settings = settings
+        self.progress = progress
+        self.extractor = SiftExtractor(settings.sift, settings.resolved_cache_dir())
+        self.matcher = VerifiedMatcher(settings.matching)
+        self._cloud: Optional[ReferenceCloud] = None
+        self._index: Optional[VisualWordIndex] = None
+
+    @property
+    def cloud(self) -> ReferenceCloud:
+        if self._cloud is None:
+            self._cloud = build_reference_cloud(
+                self.source, self.extractor, self.settings.matching, self.settings.pairing, self.settings.resolved_cache_dir(), self.progress
+            )
+        return self._cloud
+
+    def check_reference(self) -> None:
+        """Fail fast (InputError) on a missing or unreadable reference model or image folder."""
+        self.source.load()
+
+    def __call__(self, meta: MetaImage, method: Method) -> InitResult:
+        if method not in METHODS:
+            raise ValueError(f"unknown initialiser {method!r}")
+        pycolmap.set_random_seed(self.settings.matching.seed)
+        start = time.perf_counter()
+        observations = self.observations(meta)
+        if method == "colmap":
+            result = self._colmap(meta, observations)
+        else:
+            result = self._generalized(meta, observations)
+        result.wall_time_s = time.perf_counter() - start
+        return result
+
+    def observations(self, meta: MetaImage) -> list[Observations]:
+        """Per photo, its 2D-3D correspondences with the reference's SIFT points."""
+        cloud = self.cloud
+        advance = self.progress(f"SIFT on photos of {meta.name}", len(meta.photos))
+        features = []
+        for photo in meta.photos:
+            features.append(self.extractor(photo.path))
+            advance()
+        advance = self.progress(f"Matching photos of {meta.name} against the reference", len(meta.photos))
+        result = []
+        for photo, photo_features in zip(meta.photos, features):
+            points2D, points3D = self._correspondences(photo_features, photo.camera, cloud)
+            result.append(Observations(photo.name, photo.camera, photo.cam_from_world, points2D, points3D))
+            advance()
+        return result
+
+    def _candidates(self, features: ImageFeatures, cloud: ReferenceCloud) -> list[int]:
+        if len(cloud.image_ids) <= self.settings.pairing.exhaustive_limit:
+            return cloud.image_ids
+        if self._index is None:
+            self._index = VisualWordIndex([cloud.features[i] for i in cloud.image_ids], seed=self.settings.matching.seed)
+        return [cloud.image_ids[i] for i in self._index.most_similar(features, self.settings.retrieval_count)]
+
+    def _correspondences(self, features: ImageFeatures, camera: pycolmap.Camera, cloud: ReferenceCloud) -> tuple[Array, Array]:
+        """[M, 2] photo pixels and [M, 3] reference points: unique (keypoint, 3D point) pairs over all
+        verified matches with the candidate reference images."""
+        pairs = set()
+        for image_id in self._candidates(features, cloud):
+            if not (cloud.point_ids[image_id] >= 0).any():
+                continue
+            matches = self.matcher.match(features, camera, cloud.features[image_id], cloud.camera(image_id))
+            point_ids = cloud.point_ids[image_id][matches[:, 1]] if len(matches) else np.zeros(0, dtype=np.int64)
+            pairs.update((int(k), int(p)) for k, p in zip(matches[:, 0], point_ids) if p >= 0)
+        if not pairs:
+            return np.zeros((0, 2)), np.zeros((0, 3))
+        keypoints, point_ids = map(np.array, zip(*sorted(pairs)))
+        return features.points2D[keypoints], cloud.xyz(point_ids)
+
+    def alignment_max_error(self) -> float:
+        if self.settings.alignment_max_error is not None:
+            return float(self.settings.alignment_max_error)
+        reconstruction = self.cloud.reconstruction
+        centres = np.stack([reconstruction.images[i].projection_center() for i in self.cloud.image_ids])
+        return 0.05 * float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
+
+    def _colmap(self, meta: MetaImage, observations: list[Observations]) -> InitResult:
+        advance = self.progress(f"Registering photos of {meta.name}", len(observations))
+        poses = []
+        for photo_observations in observations:
+            poses.append(register_photo(photo_observations, self.settings.absolute_pose))
+            advance()
+        registered = [(o, p) for o, p in zip(observations, poses) if p.registered]
+        needed = self.settings.min_registered_photos
+        if len(registered) < needed:
+            return self._failure("colmap", meta, poses, f"only {len(registered)} of {len(poses)} photos registered to the reference (at least {needed} are needed)")
+        meta_centres = np.stack([centre_of(o.cam_from_meta) for o, _ in registered])
+        reference_centres = np.stack([centre_of(p.cam_from_reference) for _, p in registered])
+        max_error = self.alignment_max_error()
+        found = similarity_from_centres(meta_centres, reference_centres, max_error, self.settings.matching.seed)
+        if found is None or found[1].sum() < needed:
+            agreeing = 0 if found is None else int(found[1].sum())
+            return self._failure("colmap", meta, poses, f"the {len(registered)} registered photos give no Sim(3) that at least {needed} of them fit within {max_error:.3g} reference units (best: {agreeing})")
+        transform, inliers = found
+        agreeing = [p.name for (_, p), keep in zip(registered, inliers) if keep]
+        return InitResult("colmap", meta.name, transform, None, poses, agreeing, 0.0)
+
+    def _generalized(self, meta: MetaImage, observations: list[Observations]) -> InitResult:
+        advance = self.progress(f"Generalized pose of {meta.name}", 1)
+        depths = np.concatenate([p.point_depths for p in meta.photos]) if meta.photos else np.zeros(0)
+        depths = depths[depths > 0]
+        meta_depth = float(np.median(depths)) if len(depths) else float(np.median(np.linalg.norm(meta.centres - meta.centres.mean(0), axis=1)) + 1e-9)
+        pose = generalized_similarity(observations, meta_depth, self.settings.generalized)
+        advance()
+        photos = [PhotoPose(o.name, None, 0 if pose is None else pose.inliers_per_photo.get(o.name, 0), len(o.points2D)) for o in observations]
+        if pose is None:
+            total = sum(len(o.points2D) for o in observations)
+            settings = self.settings.generalized
+            return self._failure("generalized", meta, photos, f"the photos' {total} correspondences with the reference give no generalized pose with {settings.min_inliers} inliers from at least {settings.min_photos} photos")
+        agreeing = [name for name, count in pose.inliers_per_photo.items() if count > 0]
+        return InitResult("generalized", meta.name, pose.transform, None, photos, agreeing, 0.0)
+
+    @staticmethod
+    def _failure(method: str, meta: MetaImage, photos: list[PhotoPose], reason: str) -> InitResult:
+        return InitResult(method, meta.name, None, f"Initialisation '{method}' failed for meta-image '{meta.name}': {reason}.", photos, [], 0.0)
+
+
+@contextmanager
+def rich_progress(console: Console) -> Iterator[ProgressFactory]:
+    """A progress factory drawing one rich bar per stage."""
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True) as progress:
+        def factory(description: str, total: int):
+            task = progress.add_task(description, total=total)
+            return lambda: progress.advance(task)
+
+        yield factory
+
+

@@ -17,7 +17,8 @@ import yaml
 
 from sg_nerfstudio.registration.meta_image import load_meta_image
 from sg_nerfstudio.registration.metrics import pose_errors
-from sg_nerfstudio.registration.optimize import Objective, RegistrationSettings, camera_viewmat, prepare_photos, register
+from sg_nerfstudio.features import TeacherConfig, build_teacher
+from sg_nerfstudio.registration.optimize import Objective, RegistrationSettings, camera_viewmat, prepare_photos, register, teacher_on_render_target
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.sim3 import about_point, decompose, invert, perturbation, update_matrix
 from sg_nerfstudio.scripts.register_meta import main as register_main
@@ -106,6 +107,20 @@ def rendered_targets(reference, meta, photos, transform, settings):
             rendered, _ = reference.render(viewmat[None], photo.K[None], photo.width, photo.height, 0.01, kind)
             photo.target = objective.on_target_grid(rendered, photo.target)[0]
     return photos
+
+
+def test_teacher_on_render_target_sees_the_photo_as_the_render_is_seen():
+    """A photo that is exactly a render enlarged 3x gets the target the render itself is described with
+    (the blur of rendering below the teacher's input size is matched, not held against the pose)."""
+    teacher = build_teacher(TeacherConfig(name="offline", input_size=64, device="cpu"))
+    rng = np.random.default_rng(0)
+    render = rng.integers(0, 256, size=(20, 30, 3)).astype(np.float32) / 255.0
+    photo = torch.from_numpy((np.repeat(np.repeat(render, 3, axis=0), 3, axis=1) * 255.0).round().astype(np.uint8))
+    grid = teacher.grid_shape(60, 90)
+    target = teacher_on_render_target(photo, (30, 20), teacher)
+    from_render = teacher.describe(torch.from_numpy(render), grid)
+    torch.testing.assert_close(target, from_render, rtol=0, atol=1e-5)
+    assert (teacher.extract(photo.float() / 255.0) - from_render).abs().max() > 1e-2
 
 
 @pytest.mark.parametrize("objective", ["features", "teacher-on-render"])

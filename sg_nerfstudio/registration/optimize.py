@@ -130,17 +130,16 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
             images[index] = torch.from_numpy(meta.photos[index].load_undistorted())
         return images[index]
 
+    sizes = [render_size(p.camera.width, p.camera.height, settings, teacher) for p in meta.photos]
     if settings.objective == "photometric":
-        targets = [
-            F.interpolate(load(i).permute(2, 0, 1)[None].float() / 255.0, size=teacher.grid_shape(*load(i).shape[:2]), mode="area")[0].permute(1, 2, 0)
-            for i in range(len(meta.photos))
-        ]
+        targets = [area_resize(load(i), teacher.grid_shape(*load(i).shape[:2])) for i in range(len(meta.photos))]
+    elif settings.objective == "teacher-on-render":
+        targets = [teacher_on_render_target(load(i), sizes[i], teacher) for i in range(len(meta.photos))]
     else:
         targets = extract_all(load, len(meta.photos), teacher, FeatureCache(teacher_config.cache_dir), f"Teacher features ({meta.name})")
     prepared = []
-    for photo, target in zip(meta.photos, targets):
+    for photo, target, (render_w, render_h) in zip(meta.photos, targets, sizes):
         width, height = photo.camera.width, photo.camera.height
-        render_w, render_h = render_size(width, height, settings, teacher)
         K = photo.pinhole_intrinsics().copy()
         K[0] *= render_w / width
         K[1] *= render_h / height
@@ -148,6 +147,27 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
             photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(K).float(), render_w, render_h, target.float(),
         ))
     return prepared
+
+
+def area_resize(image: Tensor, size: tuple[int, int]) -> Tensor:
+    """[H, W, 3] uint8 photo -> [rows, columns, 3] float in [0, 1], each output pixel the mean of its area."""
+    pixels = image.permute(2, 0, 1)[None].float() / 255.0
+    return F.interpolate(pixels, size=size, mode="area")[0].permute(1, 2, 0)
+
+
+@torch.no_grad()
+def teacher_on_render_target(image: Tensor, render_wh: tuple[int, int], teacher: Teacher) -> Tensor:
+    """The teacher map a photo is compared with under teacher-on-render: [rows, columns, D].
+
+    The photo is first reduced to the render's own size and then described on the teacher grid of the
+    full photo, exactly the path the render takes (`Objective.on_target_grid`). Describing the full-size
+    photo instead would compare a sharp photo with an upsampled, blurrier render, which biases the
+    optimum towards poses that blur the render (too far away, wrong scale).
+    """
+    render_w, render_h = render_wh
+    small = area_resize(image, (render_h, render_w))
+    grid = teacher.grid_shape(image.shape[0], image.shape[1])
+    return teacher.describe(small.to(teacher.device), grid).float().cpu()
 
 
 def camera_viewmat(cam_from_meta: Tensor, linear: Tensor, translation: Tensor, scale: Tensor) -> Tensor:

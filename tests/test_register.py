@@ -265,3 +265,46 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     assert err.strip().count("\n") == 0, err
     assert not out.exists()
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # inputs untouched
+
+
+def moved_meta_image(source: Path, target: Path, similarity: np.ndarray) -> Path:
+    """A copy of a meta-image expressed in another frame (x_new = similarity x_old), with its ground truth."""
+    shutil.copytree(source, target)
+    sparse = target / "sparse" / "0" if (target / "sparse" / "0").is_dir() else target / "sparse"
+    reconstruction = pycolmap.Reconstruction(str(sparse))
+    scale, rotation, translation = decompose(similarity)
+    reconstruction.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
+    reconstruction.write_binary(str(sparse))
+    truth = np.array(json.loads((source / "gt_transform.json").read_text())["matrix"]) @ invert(similarity)
+    (target / "gt_transform.json").write_text(json.dumps({"matrix": truth.tolist()}))
+    return target
+
+
+def test_several_meta_images_merge_into_one_model_in_the_reference_frame(reference_config, tiny_scene, tmp_path, capsys):
+    """Two meta-images (the second in another frame) registered in one call land in merged/ with every
+    camera where its own registration put it, which is within the registration tolerance of the truth."""
+    first = tiny_scene / "meta" / "front"
+    second = moved_meta_image(first, tmp_path / "front_moved", perturbation(np.random.default_rng(3), 40.0, 2.0, 0.5))
+    out = tmp_path / "out"
+    metas = [first, second]
+    args = ["--load-config", str(reference_config), "--output-dir", str(out), "--steps", "5", "--lr", "0.001", "--merge-reference"]
+    for meta_dir in metas:
+        args += ["--meta-image", str(meta_dir), "--init", str(meta_dir / "gt_transform.json"), "--gt", str(meta_dir / "gt_transform.json")]
+    code, err = run_cli(args, capsys)
+    assert code == 0, err
+    merged = pycolmap.Reconstruction(str(out / "merged"))
+    record = json.loads((out / "merged" / "merge.json").read_text())
+    assert [part["source"] for part in record["merged"]] == ["reference", "front", "front_moved"] and record["not_merged"] == []
+    reference_images = pycolmap.Reconstruction(str(tiny_scene / "reference" / "colmap" / "sparse" / "0")).num_reg_images()
+    assert merged.num_images() == reference_images + 2 * len(load_meta_image(first).photos)
+    assert merged.num_points3D() == sum(part["points3D"] for part in record["merged"])
+    for meta_dir in metas:
+        meta = load_meta_image(meta_dir)
+        result = np.array(json.loads((out / meta.name / "transform.json").read_text())["matrix"])
+        truth = np.array(json.loads((meta_dir / "gt_transform.json").read_text())["matrix"])
+        for photo in meta.photos:
+            image = merged.find_image_with_name(f"{meta.name}/{photo.name}")
+            np.testing.assert_allclose(image.projection_center(), (result @ np.append(photo.centre, 1))[:3], atol=1e-6)
+        errors = pose_errors([p.cam_from_world for p in meta.photos], result, truth)
+        assert errors.rotation_deg < 1.0 and errors.translation < 0.05, errors
+    assert {track.image_id for point in merged.points3D.values() for track in point.track.elements} <= set(merged.reg_image_ids())

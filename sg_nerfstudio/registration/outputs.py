@@ -22,11 +22,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-import pycolmap  # noqa: E402
 import torch  # noqa: E402
 
 from sg_nerfstudio.atomic import atomic_directory  # noqa: E402
 from sg_nerfstudio.registration.meta_image import MetaImage  # noqa: E402
+from sg_nerfstudio.registration.merge import aligned_reconstruction  # noqa: E402
 from sg_nerfstudio.registration.metrics import PoseErrors  # noqa: E402
 from sg_nerfstudio.registration.optimize import RegistrationResult, camera_viewmat  # noqa: E402
 from sg_nerfstudio.registration.reference import ReferenceModel  # noqa: E402
@@ -92,11 +92,8 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
 
 
 def _write_aligned_model(directory: Path, meta: MetaImage, transform: Array) -> None:
-    reconstruction = pycolmap.Reconstruction(meta.reconstruction)
-    scale, rotation, translation = decompose(transform)
-    reconstruction.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
     directory.mkdir()
-    reconstruction.write_binary(str(directory))
+    aligned_reconstruction(meta.reconstruction, transform).write_binary(str(directory))
 
 
 def _write_losses(path: Path, result: RegistrationResult) -> None:

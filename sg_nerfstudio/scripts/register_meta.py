@@ -13,6 +13,10 @@ COLMAP model and images (sg_nerfstudio/initialisers; by default the ones the tra
 read, else --reference-colmap / --reference-images). When an initialiser fails for a meta-image, that is
 reported in one sentence and no result directory is written for it; the other meta-images are still
 registered, and the exit status is 1 only when no meta-image was registered.
+
+Given several meta-images it also writes `<output-dir>/merged/` (registration/merge.py): one COLMAP model
+with every registered meta-image in the reference frame (`--merge-reference` adds the reference's own
+cameras); merge.json lists the meta-images that were not merged.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Optional
 
 import numpy as np
+import pycolmap
 import tyro
 import yaml
 from rich.console import Console
@@ -35,12 +40,16 @@ from rich.text import Text
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress
+from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
 from sg_nerfstudio.registration.meta_image import load_meta_image
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.optimize import InitialisationError, RegistrationSettings, prepare_photos, register
 from sg_nerfstudio.registration.outputs import write_outputs
 from sg_nerfstudio.registration.reference import load_reference, read_trainer_config
 from sg_nerfstudio.registration.sim3 import decompose
+
+
+MERGED = "merged"
 
 
 class ArgumentError(InputError):
@@ -75,6 +84,9 @@ class RegisterMetaArgs:
     gt: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction] = ()
     """Ground-truth transform (gt_transform.json) to report ΔR / ΔT; once per meta-image, in order."""
     settings: RegistrationSettings = field(default_factory=RegistrationSettings)
+    merge_reference: bool = False
+    """With several meta-images: also put the reference's own COLMAP cameras and points into merged/ (read
+    from --reference-colmap or the trained config's dataparser)."""
     overwrite: bool = False
     """Replace existing result directories."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
@@ -149,13 +161,17 @@ def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
     init_values = per_meta_values(args.init or ("identity",), len(metas), "--init", allow_single=True)
     inits = [read_initial_transform(v) for v in init_values]
     gts = [read_transform_json(p, "Ground truth") for p in per_meta_values(args.gt, len(metas), "--gt", allow_single=False)] if args.gt else [None] * len(metas)
-    for meta in metas:
-        target = args.output_dir / meta.name
+    targets = [args.output_dir / meta.name for meta in metas] + ([args.output_dir / MERGED] if len(metas) > 1 else [])
+    for target in targets:
         if target.exists() and not args.overwrite:
             raise ArgumentError(f"Result directory {target} exists; pass --overwrite to replace it.")
+    if MERGED in names and len(metas) > 1:
+        raise ArgumentError(f"A meta-image may not be named '{MERGED}' when several are registered (that is where they are merged).")
+    for meta in metas:
         if meta.unlisted:
             console.print(f"[yellow]{meta.name}: {len(meta.unlisted)} files in images/ are not in the COLMAP model and are ignored: {', '.join(meta.unlisted[:5])}[/yellow]")
 
+    reference_part = read_reference_part(args) if args.merge_reference and len(metas) > 1 else None
     initialiser = None
     if any(value in METHODS for value in init_values):
         source = resolve_reference_source(args.load_config, args.reference_colmap, args.reference_images)
@@ -182,7 +198,36 @@ def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
         target = write_outputs(args.output_dir / meta.name, reference, meta, result, errors, overwrite=args.overwrite)
         summaries.append({"meta": meta, "result": result, "errors": errors, "target": target})
     print_summary(summaries, console)
+    if len(metas) > 1:
+        write_merge(args.output_dir / MERGED, summaries, reference_part, args.overwrite, console)
     return summaries
+
+
+def read_reference_part(args: RegisterMetaArgs) -> MergePart:
+    """The reference's own COLMAP model (already in the reference world frame) for --merge-reference."""
+    colmap_path = resolve_reference_source(args.load_config, args.reference_colmap, args.reference_images).colmap_path
+    try:
+        return MergePart("reference", pycolmap.Reconstruction(str(colmap_path)))
+    except Exception as error:
+        raise ArgumentError(f"--merge-reference could not read the reference COLMAP model {colmap_path} ({type(error).__name__}); pass --reference-colmap.") from None
+
+
+def write_merge(target: Path, summaries: list[dict], reference_part: Optional[MergePart], overwrite: bool, console: Console) -> None:
+    """merged/: every registered meta-image (and optionally the reference) in one COLMAP model."""
+    parts = [reference_part] if reference_part is not None else []
+    not_merged = {}
+    for entry in summaries:
+        meta, result = entry["meta"], entry["result"]
+        if result is None:
+            not_merged[meta.name] = "initialisation failed"
+        else:
+            parts.append(MergePart(meta.name, aligned_reconstruction(meta.reconstruction, result.transform), result.transform))
+    if not any(part.transform is not None for part in parts):
+        console.print(f"[yellow]No meta-image was registered, so {target} is not written.[/yellow]")
+        return
+    write_merged(target, parts, not_merged, overwrite=overwrite)
+    skipped = f"; not merged: {', '.join(not_merged)}" if not_merged else ""
+    console.print(f"Merged model of {len(parts)} reconstructions in the reference frame: {target}{skipped}", soft_wrap=True)
 
 
 def compute_initial_transform(initialiser: Initialiser, meta, method: str, console: Console) -> Optional[np.ndarray]:

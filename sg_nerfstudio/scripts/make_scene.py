@@ -2,14 +2,19 @@
 
     sg-make-scene --preset tiny --output demo_scene
     sg-make-scene --preset default --output scenes/cathedral --seed 3 --occluder-rate 0.5
+    sg-make-scene --preset benchmark --output bench            # a suite: bench/<scene>/ for each scene
 
 `--preset` picks the starting settings (see `sg_nerfstudio.synthetic.PRESETS`); every other flag
 overrides one of them (`sg-make-scene --preset tiny --help` lists them with the preset's values).
+A suite preset (`sg_nerfstudio.synthetic.generator.SUITES`: `benchmark`, `tiny-benchmark`) writes several
+scenes into `<output>/<scene name>/` plus `<output>/benchmark.json` naming them, the layout `sg-bench`
+reads; it takes only --output and --overwrite.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +24,9 @@ from rich.console import Console
 from rich.text import Text
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.synthetic import PRESETS, SceneConfig, SceneGenerationError, generate_scene
+from sg_nerfstudio.synthetic.generator import SUITES
 
 
 @dataclass
@@ -33,14 +40,50 @@ class MakeSceneArgs:
     """Replace an existing output directory."""
 
 
+@dataclass
+class SuiteArgs:
+    """Generate a benchmark suite: several synthetic scenes in one directory (the layout sg-bench reads)."""
+
+    output: Path
+    """Directory to create (holding <scene>/ per scene and benchmark.json); refused if it exists unless --overwrite."""
+    overwrite: bool = False
+
+
+def make_suite(name: str, args: SuiteArgs, console: Console) -> int:
+    """Write every scene of the suite `name` into args.output, atomically as a whole."""
+    if args.output.exists() and not args.overwrite:
+        console.print(Text(f"Output directory {args.output} already exists; pass --overwrite to replace it.", style="red"), soft_wrap=True)
+        return 1
+    manifest = {"suite": name, "scenes": []}
+    try:
+        with atomic_directory(args.output, overwrite=args.overwrite) as staging, scene_progress(console) as progress:
+            for scene_name, config in SUITES[name].items():
+                scene = generate_scene(config, staging / scene_name, progress=progress)
+                manifest["scenes"].append({"name": scene_name, "meta_images": [m["name"] for m in scene["meta_images"]]})
+                console.print(f"{scene_name}: " + ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in scene["meta_images"]))
+            (staging / "benchmark.json").write_text(json.dumps(manifest, indent=2))
+    except SceneGenerationError as error:
+        console.print(Text(str(error), style="red"), soft_wrap=True)
+        return 1
+    console.print(f"Wrote the '{name}' suite of {len(manifest['scenes'])} scenes to {args.output}.")
+    return 0
+
+
+def scene_progress(console: Console) -> Progress:
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", default="default")
     known, rest = pre.parse_known_args(argv)
     console = Console(stderr=True)
+    if known.preset in SUITES:
+        return make_suite(known.preset, tyro.cli(SuiteArgs, args=rest, prog=f"sg-make-scene --preset {known.preset}"), console)
     if known.preset not in PRESETS:
-        console.print(Text(f"Unknown --preset {known.preset!r}; expected one of: {', '.join(PRESETS)}.", style="red"), soft_wrap=True)
+        names = ", ".join([*PRESETS, *SUITES])
+        console.print(Text(f"Unknown --preset {known.preset!r}; expected one of: {names}.", style="red"), soft_wrap=True)
         return 2
     args = tyro.cli(
         MakeSceneArgs,
@@ -50,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         config=(tyro.conf.OmitArgPrefixes,),
     )
     try:
-        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True) as progress:
+        with scene_progress(console) as progress:
             manifest = generate_scene(args.scene, args.output, overwrite=args.overwrite, progress=progress)
     except SceneGenerationError as error:
         console.print(Text(str(error), style="red"), soft_wrap=True)

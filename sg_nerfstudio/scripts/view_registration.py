@@ -62,6 +62,8 @@ KIND_LABELS = {"initial": "initial (red)", "final": "final (green)", "ground_tru
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])
 PANEL_LONG_SIDE = 320
 """Long side in pixels of the photo and of the render shown side by side for a clicked frustum."""
+THUMBNAIL_LONG_SIDE = 64
+"""Long side of the photo drawn on each frustum's image plane."""
 
 
 class RegistrationViewError(InputError):
@@ -339,6 +341,7 @@ class RegistrationScene:
         self.viewer = viewer
         self.server = viewer.viser_server
         self.frustums: dict[str, Frustum] = {}
+        self.thumbnails: dict[str, Array] = {}
         self.groups: dict[str, object] = {}
         """Scene frames /registrations/<meta> and /registrations/<meta>/<kind> (viser FrameHandle) by name."""
         self.toggles: dict[str, dict[str, object]] = {}
@@ -380,6 +383,17 @@ class RegistrationScene:
 
         return checkbox
 
+    def _thumbnail(self, photo) -> Array:
+        """The photo on the frustum's image plane: shows which photo it is, and the plane (unlike the 1-px
+        frame lines) is easy to click."""
+        key = str(photo.path)
+        if key not in self.thumbnails:
+            image = photo.load_undistorted()
+            factor = THUMBNAIL_LONG_SIDE / max(image.shape[:2])
+            size = (max(1, round(image.shape[1] * factor)), max(1, round(image.shape[0] * factor)))
+            self.thumbnails[key] = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        return self.thumbnails[key]
+
     def _add_frustums(self, registration: Registration, kind: str, meta_to_dataparser: Array, frustum_scale: float) -> None:
         for photo in registration.meta.photos:
             camera_to_world = dataparser_camera_to_world(photo.cam_from_world, meta_to_dataparser)
@@ -388,6 +402,7 @@ class RegistrationScene:
             name = frustum_name(registration.name, kind, photo.name)
             handle = self.server.scene.add_camera_frustum(
                 name=name, fov=fov, aspect=aspect, scale=frustum_scale, color=KIND_COLOURS[kind], wxyz=wxyz, position=position,
+                image=self._thumbnail(photo),
             )
             frustum = Frustum(name, registration, photo, kind, camera_to_world, handle)
             handle.on_click(lambda event, frustum=frustum: self.on_click(frustum, event.client))

@@ -1,0 +1,1 @@
+"""sg-bench: the in-the-wild benchmark (layout, runs, tables). See `sg_nerfstudio.scripts.bench`."""

@@ -1,0 +1,89 @@
+"""The directory layout `sg-bench` reads, so users can drop in their own data (e.g. a WikiEarth-style release).
+
+    <benchmark>/
+        benchmark.json                      optional: {"scenes": [{"name": "<scene>"}, ...]} (order and
+                                            selection); without it every sub-directory holding reference/
+        <scene>/reference/images/           the reference capture (photos or renders of the whole landmark)
+        <scene>/reference/colmap/sparse/0/  its COLMAP model (nerfstudio's colmap layout; sparse/0/ also accepted)
+        <scene>/meta/<meta>/images/         one meta-image: photos ...
+        <scene>/meta/<meta>/sparse/0/       ... its own COLMAP reconstruction (any frame and scale) ...
+        <scene>/meta/<meta>/gt_transform.json   ... and the ground truth {"matrix": 4x4 meta -> reference world}
+
+`sg-make-scene --preset benchmark` writes exactly this. Everything is checked before any training starts;
+a wrong layout is one sentence naming the path and what was expected.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.registration.sim3 import decompose
+
+REFERENCE_MODELS = (Path("colmap") / "sparse" / "0", Path("sparse") / "0")
+
+
+class BenchmarkLayoutError(InputError):
+    """A benchmark directory that does not follow the layout."""
+
+
+@dataclass
+class BenchmarkMeta:
+    name: str
+    directory: Path
+    ground_truth: np.ndarray  # [4, 4] meta -> reference world
+
+
+@dataclass
+class BenchmarkScene:
+    name: str
+    directory: Path
+    reference: Path  # the reference capture directory (images/ + COLMAP model)
+    reference_model: Path  # its COLMAP model, relative to `reference`
+    metas: list[BenchmarkMeta]
+
+
+def read_benchmark(directory: Path) -> list[BenchmarkScene]:
+    """Every scene of the benchmark at `directory`, checked against the layout."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise BenchmarkLayoutError(f"Benchmark directory {directory} does not exist; expected <benchmark>/<scene>/reference and meta/ (see sg-bench --help).")
+    manifest = directory / "benchmark.json"
+    if manifest.is_file():
+        try:
+            names = [entry["name"] for entry in json.loads(manifest.read_text())["scenes"]]
+        except Exception as error:
+            raise BenchmarkLayoutError(f"{manifest} is not JSON with a list \"scenes\" of {{\"name\": ...}} ({type(error).__name__}).") from None
+    else:
+        names = sorted(p.name for p in directory.iterdir() if (p / "reference").is_dir())
+    if not names:
+        raise BenchmarkLayoutError(f"Benchmark directory {directory} holds no scene; expected sub-directories with reference/ and meta/.")
+    return [read_scene(directory / name) for name in names]
+
+
+def read_scene(directory: Path) -> BenchmarkScene:
+    reference = directory / "reference"
+    if not (reference / "images").is_dir():
+        raise BenchmarkLayoutError(f"Scene {directory} has no reference/images/; expected the reference capture's images there.")
+    models = [m for m in REFERENCE_MODELS if (reference / m).is_dir()]
+    if not models:
+        raise BenchmarkLayoutError(f"Scene {directory} has no reference COLMAP model; expected reference/colmap/sparse/0/ or reference/sparse/0/.")
+    meta_root = directory / "meta"
+    metas = sorted(p for p in meta_root.iterdir() if p.is_dir()) if meta_root.is_dir() else []
+    if not metas:
+        raise BenchmarkLayoutError(f"Scene {directory} has no meta-images; expected meta/<name>/ with images/, sparse/0/ and gt_transform.json.")
+    return BenchmarkScene(directory.name, directory, reference, models[0], [read_meta(path) for path in metas])
+
+
+def read_meta(directory: Path) -> BenchmarkMeta:
+    path = directory / "gt_transform.json"
+    try:
+        matrix = np.asarray(json.loads(path.read_text())["matrix"], dtype=np.float64)
+        decompose(matrix)
+    except Exception as error:
+        raise BenchmarkLayoutError(f"Meta-image {directory} needs gt_transform.json with a 4x4 similarity \"matrix\" (meta -> reference world) ({type(error).__name__}).") from None
+    return BenchmarkMeta(directory.name, directory, matrix)

@@ -1,0 +1,181 @@
+"""results.md, results.csv and robustness curves from sg-bench's run records (see runs.py).
+
+Metrics as in the paper (section 5.1, supplement): ΔR and ΔT are averaged over the meta-images an
+initialiser succeeded on; MTA is the percentage of meta-images with ΔR < 5° and ΔT < 0.2, O% those with
+ΔR > 10° or ΔT > 0.5, both over the successful ones; #Failures counts meta-images without a transform.
+A registration that stops with an error (e.g. nothing rendered) counts as a failure of its row.
+"""
+
+from __future__ import annotations
+
+import csv
+import statistics
+from collections import defaultdict
+from pathlib import Path
+from typing import Optional
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+MTA_THRESHOLDS = ((3, 0.1), (7, 0.1), (10, 0.1), (5, 0.09), (5, 0.15), (5, 0.2))
+OUTLIER_THRESHOLDS = ((10, 0.3), (10, 0.4), (10, 0.6), (15, 0.5), (17, 0.5), (20, 0.5))
+"""The supplement's threshold sweeps (degrees, scene units)."""
+CSV_COLUMNS = ("scene", "meta", "photos", "run", "family", "label", "init_failure", "refine_failure",
+               "dR_before", "dT_before", "dR_after", "dT_after", "init_time_s", "refine_time_s")
+
+
+def write_csv(path: Path, records: list[dict]) -> None:
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for r in records:
+            before, after = r["before"] or {}, r["after"] or {}
+            writer.writerow({
+                **{k: r[k] for k in ("scene", "meta", "photos", "run", "family", "label", "init_failure", "refine_failure")},
+                "dR_before": before.get("dR"), "dT_before": before.get("dT"), "dR_after": after.get("dR"), "dT_after": after.get("dT"),
+                "init_time_s": round(r["init_time_s"], 2), "refine_time_s": round(r["refine_time_s"], 2),
+            })
+
+
+def row_metrics(errors: list[Optional[dict]]) -> dict:
+    """Mean ΔR, ΔT, MTA %, O % over the successful entries (None = failure) and the failure count."""
+    done = [e for e in errors if e is not None]
+    if not done:
+        return {"dR": None, "dT": None, "MTA": None, "O": None, "failures": len(errors), "n": len(errors)}
+    return {
+        "dR": statistics.mean(e["dR"] for e in done), "dT": statistics.mean(e["dT"] for e in done),
+        "MTA": 100.0 * sum(e["dR"] < 5 and e["dT"] < 0.2 for e in done) / len(done),
+        "O": 100.0 * sum(e["dR"] > 10 or e["dT"] > 0.5 for e in done) / len(done),
+        "failures": len(errors) - len(done), "n": len(errors),
+    }
+
+
+def table1(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
+    """The paper's Table 1: each initialiser alone, then our registration started from it."""
+    lines = ["| method | ΔR (°) | ΔT | MTA (%) | O (%) | #Failures |", "|---|---|---|---|---|---|"]
+    for init in initialisers:
+        runs = [r for r in records if r["family"] == "table1" and r["run"] == init]
+        if not runs:
+            continue
+        baseline = row_metrics([r["before"] for r in runs])
+        ours = row_metrics([r["after"] if r["before"] is not None else None for r in runs if r["before"] is not None])
+        lines.append(_metrics_row(f"{init} (start)", baseline, f"{baseline['failures']}/{baseline['n']}"))
+        refine_failures = sum(r["before"] is not None and r["after"] is None for r in runs)
+        lines.append(_metrics_row(f"ours ({init} init)", ours, f"{refine_failures} registration errors" if refine_failures else "-"))
+    return lines
+
+
+def _metrics_row(name: str, m: dict, failures: str) -> str:
+    if m["dR"] is None:
+        return f"| {name} | - | - | - | - | {failures} |"
+    return f"| {name} | {m['dR']:.2f} | {m['dT']:.3f} | {m['MTA']:.0f} | {m['O']:.0f} | {failures} |"
+
+
+def threshold_sweeps(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
+    """MTA_(r, t) and O%_(r, t) over the supplement's thresholds, for each start and its refinement."""
+    header = [f"MTA({r},{t})" for r, t in MTA_THRESHOLDS] + [f"O({r},{t})" for r, t in OUTLIER_THRESHOLDS]
+    lines = ["| method | " + " | ".join(header) + " |", "|---|" + "---|" * len(header)]
+    for init in initialisers:
+        runs = [r for r in records if r["family"] == "table1" and r["run"] == init and r["before"] is not None]
+        for name, key in ((f"{init} (start)", "before"), (f"ours ({init} init)", "after")):
+            done = [r[key] for r in runs if r[key] is not None]
+            if not done:
+                continue
+            mta = [100.0 * sum(e["dR"] < a and e["dT"] < b for e in done) / len(done) for a, b in MTA_THRESHOLDS]
+            out = [100.0 * sum(e["dR"] > a or e["dT"] > b for e in done) / len(done) for a, b in OUTLIER_THRESHOLDS]
+            lines.append(f"| {name} | " + " | ".join(f"{v:.0f}" for v in mta + out) + " |")
+    return lines
+
+
+def per_meta(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
+    """One row per meta-image: for each start, ΔR / ΔT before -> after (or why it failed)."""
+    lines = ["| scene | meta-image | photos | " + " | ".join(initialisers) + " |", "|---|---|---|" + "---|" * len(initialisers)]
+    by_meta: dict[tuple[str, str], dict[str, dict]] = defaultdict(dict)
+    for r in records:
+        if r["family"] == "table1":
+            by_meta[(r["scene"], r["meta"])][r["run"]] = r
+    for (scene, meta), runs in sorted(by_meta.items()):
+        photos = next(iter(runs.values()))["photos"]
+        cells = [_transition(runs.get(init)) for init in initialisers]
+        lines.append(f"| {scene} | {meta} | {photos} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _transition(record: Optional[dict]) -> str:
+    if record is None:
+        return "not run"
+    if record["before"] is None:
+        return "init failed"
+    before = f"{record['before']['dR']:.2f}° / {record['before']['dT']:.3f}"
+    if record["after"] is None:
+        return f"{before} -> registration error"
+    return f"{before} -> {record['after']['dR']:.2f}° / {record['after']['dT']:.3f}"
+
+
+def ablation_table(records: list[dict]) -> list[str]:
+    rows: dict[str, list[dict]] = defaultdict(list)
+    for r in records:
+        if r["family"] == "ablation":
+            rows[r["label"]].append(r)
+    if not rows:
+        return []
+    lines = ["| variant | ΔR (°) | ΔT | MTA (%) | O (%) | runs |", "|---|---|---|---|---|---|"]
+    for name, runs in rows.items():
+        m = row_metrics([r["after"] for r in runs])
+        lines.append(_metrics_row(name, m, str(len(runs))))
+    return lines
+
+
+def robustness_curves(records: list[dict], directory: Path) -> list[str]:
+    """PNG curves of the final error against the start's rotation noise and the meta-image size."""
+    written = []
+    for family, x_label, key, name in (
+        ("noise", "initial rotation noise (°)", lambda r: float(r["label"]), "robustness_noise.png"),
+        ("size", "photos in the meta-image", lambda r: int(r["label"]), "robustness_size.png"),
+    ):
+        groups: dict[float, list[dict]] = defaultdict(list)
+        for r in records:
+            if r["family"] == family and r["after"] is not None:
+                groups[key(r)].append(r["after"])
+        if family == "size":  # the full meta-images, from the perturbed start
+            for r in records:
+                if r["family"] == "table1" and r["run"] == "perturbed" and r["after"] is not None:
+                    groups[r["photos"]].append(r["after"])
+        if len(groups) < 2:
+            continue
+        xs = sorted(groups)
+        figure, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+        for axis, metric, label in ((axes[0], "dR", "mean ΔR (°)"), (axes[1], "dT", "mean ΔT")):
+            axis.plot(xs, [statistics.mean(e[metric] for e in groups[x]) for x in xs], marker="o")
+            axis.set_xlabel(x_label)
+            axis.set_ylabel(label)
+            axis.grid(alpha=0.3)
+        figure.tight_layout()
+        figure.savefig(directory / name, dpi=120)
+        plt.close(figure)
+        written.append(name)
+    return written
+
+
+def write_results(output: Path, records: list[dict], initialisers: tuple[str, ...], header: list[str]) -> Path:
+    """results.csv, the PNG curves and results.md (which links them) in `output`."""
+    write_csv(output / "results.csv", records)
+    curves = robustness_curves(records, output)
+    sections = [
+        "# sg-bench results", "", *header, "",
+        "## Table 1: initialisers alone and refined by our registration", "",
+        "Errors averaged over the meta-images each start exists for; MTA: ΔR < 5° and ΔT < 0.2; O%: ΔR > 10° or ΔT > 0.5.", "",
+        *table1(records, initialisers), "",
+        "## MTA and O% over other thresholds (ΔR °, ΔT)", "", *threshold_sweeps(records, initialisers), "",
+        "## Per meta-image (ΔR / ΔT before -> after)", "", *per_meta(records, initialisers), "",
+    ]
+    ablations = ablation_table(records)
+    if ablations:
+        sections += ["## Ablations (from the perturbed start)", "", *ablations, ""]
+    if curves:
+        sections += ["## Robustness curves", "", *[f"![{name}]({name})" for name in curves], ""]
+    path = output / "results.md"
+    path.write_text("\n".join(sections))
+    return path

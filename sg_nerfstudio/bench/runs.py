@@ -1,0 +1,198 @@
+"""The runs of sg-bench: train (or reuse) each scene's reference, then initialise and register each meta-image.
+
+Every run writes one JSON record, `<output>/runs/<scene>/<meta>/<run>.json`, atomically once it is done;
+a run whose record exists is skipped, so an interrupted benchmark continues where it stopped. Trained
+references are kept in `<output>/references/<scene>/` and reused the same way.
+
+Runs per meta-image (`RunSpec.name`):
+- `<initialiser>` for each of `--initialisers`: `colmap` / `generalized` (sg_nerfstudio.initialisers, the
+  paper's baselines) or `perturbed` (the ground truth moved by 5°, 0.1 and 10% in random directions about
+  the cameras' centroid, the synthetic start of the accuracy benchmark); the record holds the start's
+  errors (Table 1's baseline rows) and the registration's (the "ours (... init)" rows);
+- `ablation-<row>` for each of `--ablations` (settings changed as in the registration benchmark), from the
+  `perturbed` start;
+- `noise-<deg>` for each of `--noise-levels`: rotation noise only, from the ground truth;
+- `size-<n>-<k>` for each of `--sizes` smaller than the meta-image: k-th random subset of n photos
+  (`--size-samples` of them), from the `perturbed` start (the supplement's limitations figure).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from sg_nerfstudio.bench.layout import BenchmarkMeta, BenchmarkScene
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.features import TeacherConfig
+from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
+from sg_nerfstudio.registration.meta_image import MetaImage, load_meta_image
+from sg_nerfstudio.registration.metrics import pose_errors
+from sg_nerfstudio.registration.optimize import RegistrationSettings, register
+from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
+from sg_nerfstudio.registration.sim3 import about_point, perturbation
+
+Array = np.ndarray
+PERTURBED_START = (5.0, 0.1, 0.1)
+"""Rotation (degrees), translation (scene units) and scale fraction of the `perturbed` start."""
+ABLATIONS = {
+    "full": {},
+    "decoded-features": {"objective": "features"},
+    "photometric": {"objective": "photometric"},
+    "l2": {"loss": "l2"},
+    "none": {"robust": "none"},
+    "fixed-lts": {"robust": "fixed-lts"},
+    "irls": {"robust": "irls"},
+}
+"""Ablation rows: registration settings changed from the preset."""
+
+
+@dataclass
+class BenchOptions:
+    settings: RegistrationSettings
+    train_steps: int = 3000
+    initialisers: tuple[str, ...] = ("colmap", "generalized", "perturbed")
+    ablations: tuple[str, ...] = ()
+    noise_levels: tuple[float, ...] = ()
+    sizes: tuple[int, ...] = ()
+    size_samples: int = 1
+    seed: int = 0
+
+
+@dataclass
+class RunSpec:
+    """One registration of one meta-image: where it starts and what is changed."""
+
+    name: str
+    family: str  # table1 | ablation | noise | size
+    start: str  # colmap | generalized | perturbed | noise
+    label: str = ""
+    overrides: dict = field(default_factory=dict)
+    rotation_noise_deg: float = 0.0
+    subset_size: int = 0
+    sample: int = 0
+
+
+def planned_runs(options: BenchOptions, n_photos: int) -> list[RunSpec]:
+    """Every run for one meta-image of `n_photos` photos, in execution order."""
+    runs = [RunSpec(init, "table1", init, init) for init in options.initialisers]
+    runs += [RunSpec(f"ablation-{name}", "ablation", "perturbed", name, ABLATIONS[name]) for name in options.ablations]
+    runs += [RunSpec(f"noise-{level:g}", "noise", "noise", f"{level:g}", rotation_noise_deg=level) for level in options.noise_levels]
+    runs += [
+        RunSpec(f"size-{size}-{sample}", "size", "perturbed", str(size), subset_size=size, sample=sample)
+        for size in options.sizes if 3 <= size < n_photos for sample in range(options.size_samples)
+    ]
+    return runs
+
+
+def record_path(output: Path, scene: str, meta: str, run: str) -> Path:
+    return output / "runs" / scene / meta / f"{run}.json"
+
+
+def write_json_atomically(path: Path, record: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = path.with_name(f".{path.name}.tmp")
+    staging.write_text(json.dumps(record, indent=2, default=float))
+    os.replace(staging, path)
+
+
+def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Callable[[int], None]) -> tuple[Path, float]:
+    """config.yml of the scene's reference model (trained now or reused) and the training wall time."""
+    from sg_nerfstudio.training import cpu_config, save, train
+
+    directory = output / "references" / scene.name
+    marker = directory / "reference.json"
+    if marker.is_file():
+        record = json.loads(marker.read_text())
+        if Path(record["config"]).is_file():
+            return Path(record["config"]), float(record["train_s"])
+    teacher = TeacherConfig(name="offline", input_size=256, cache_dir=directory / "feature_cache")
+    config = cpu_config(scene.reference, directory / "runs", steps, teacher, experiment_name=scene.name)
+    config.pipeline.datamanager.dataparser.colmap_path = scene.reference_model
+    config.pipeline.model.resolution_schedule = max(steps // 6, 1)
+    config.pipeline.model.stop_split_at = int(0.4 * steps)
+    config.pipeline.model.background_color = "learned"
+    started = time.perf_counter()
+    trainer = train(config, lambda step, *_: on_step(step))
+    path = save(trainer, config)
+    elapsed = time.perf_counter() - started
+    write_json_atomically(marker, {"config": str(path), "train_s": elapsed, "steps": steps})
+    return path, elapsed
+
+
+class SceneRunner:
+    """Runs every planned registration of one scene against its reference model."""
+
+    def __init__(self, scene: BenchmarkScene, config_path: Path, options: BenchOptions, output: Path):
+        self.scene, self.options, self.output = scene, options, output
+        self.reference: ReferenceModel = load_reference(config_path)
+        self.initialiser = Initialiser(ReferenceSource(scene.reference / scene.reference_model, scene.reference / "images"), InitialiserSettings())
+        self.reference_unusable: Optional[str] = None  # why the initialisers cannot use this reference, once known
+
+    def pending(self, meta: BenchmarkMeta, n_photos: int) -> list[RunSpec]:
+        return [run for run in planned_runs(self.options, n_photos) if not record_path(self.output, self.scene.name, meta.name, run.name).is_file()]
+
+    def run(self, meta: BenchmarkMeta, loaded: MetaImage, spec: RunSpec, on_step: Callable[[int], None]) -> dict:
+        """Execute one run and write its record."""
+        seed = self.options.seed + spec.sample
+        rng = np.random.default_rng([seed, sum(map(ord, meta.name)), sum(map(ord, spec.name))])
+        subject = loaded
+        if spec.subset_size:
+            chosen = sorted(rng.choice(len(loaded.photos), spec.subset_size, replace=False).tolist())
+            subject = replace(loaded, photos=[loaded.photos[i] for i in chosen])
+        started = time.perf_counter()
+        start, failure = self.start(meta, subject, spec, rng)
+        record = {
+            "scene": self.scene.name, "meta": meta.name, "photos": len(subject.photos), "run": spec.name, "family": spec.family,
+            "start": spec.start, "label": spec.label, "init_failure": failure, "init_time_s": time.perf_counter() - started,
+            "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0,
+        }
+        poses = [p.cam_from_world for p in subject.photos]
+        if start is not None:
+            record["before"] = summary(pose_errors(poses, start, meta.ground_truth))
+            settings = replace(self.options.settings, seed=seed, **spec.overrides)
+            try:
+                result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step))
+            except (InputError, FloatingPointError) as error:
+                record["refine_failure"] = str(error)
+            else:
+                record["after"] = summary(pose_errors(poses, result.transform, meta.ground_truth))
+                record["refine_time_s"] = result.wall_time_s
+        write_json_atomically(record_path(self.output, self.scene.name, meta.name, spec.name), record)
+        return record
+
+    def start(self, meta: BenchmarkMeta, subject: MetaImage, spec: RunSpec, rng: np.random.Generator) -> tuple[Optional[Array], Optional[str]]:
+        """The initial transform of a run, or (None, the initialiser's failure sentence)."""
+        truth = meta.ground_truth
+        if spec.start in METHODS:
+            if self.reference_unusable is None:
+                try:
+                    outcome = self.initialiser(subject, spec.start)
+                    return outcome.transform, outcome.failure
+                except InputError as error:  # e.g. the reference images share too few SIFT matches
+                    self.reference_unusable = str(error)
+            return None, self.reference_unusable
+        if spec.start == "noise":
+            noise = perturbation(rng, spec.rotation_noise_deg, 0.0, 0.0)
+        else:
+            noise = perturbation(rng, *PERTURBED_START)
+        return about_point(noise, subject.centroid_under(truth)) @ truth, None
+
+
+def summary(errors) -> dict:
+    return {"dR": errors.rotation_deg, "dT": errors.translation, "accurate": errors.accurate(), "outlier": errors.outlier()}
+
+
+def load_meta(meta: BenchmarkMeta) -> MetaImage:
+    return load_meta_image(meta.directory)
+
+
+def read_records(output: Path) -> list[dict]:
+    """Every finished run record under `<output>/runs`."""
+    root = output / "runs"
+    return [json.loads(path.read_text()) for path in sorted(root.glob("*/*/*.json"))] if root.is_dir() else []

@@ -1,0 +1,94 @@
+"""sg-bench and sg-make-scene's benchmark suites: layout, runs, tables, resumption, bad layouts."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from sg_nerfstudio.bench.layout import BenchmarkLayoutError, read_benchmark
+from sg_nerfstudio.scripts.bench import main as bench_main
+from sg_nerfstudio.scripts.make_scene import main as make_scene_main
+from sg_nerfstudio.synthetic.generator import SUITES
+
+
+@pytest.fixture(scope="module")
+def suite(tmp_path_factory) -> Path:
+    output = tmp_path_factory.mktemp("bench") / "suite"
+    assert make_scene_main(["--preset", "tiny-benchmark", "--output", str(output)]) == 0
+    return output
+
+
+@pytest.fixture(scope="module")
+def preset(tmp_path_factory) -> Path:
+    values = yaml.safe_load(Path("configs/register/fast-cpu.yaml").read_text()) | {"steps": 4}
+    path = tmp_path_factory.mktemp("preset") / "short.yaml"
+    path.write_text(yaml.safe_dump(values))
+    return path
+
+
+def test_benchmark_suite_definitions_follow_the_issue():
+    """The default suite: at least 6 landmarks, 2-3 meta-images each, 8-60 photos, varied occluders and appearance."""
+    scenes = SUITES["benchmark"]
+    assert len(scenes) >= 6
+    shapes = {(c.building.towers, c.building.roof, c.building.width, c.building.depth) for c in scenes.values()}
+    assert len(shapes) == len(scenes)
+    for config in scenes.values():
+        counts = [int(entry.split(":")[1]) for entry in config.meta_images]
+        assert 2 <= len(counts) <= 3 and all(8 <= n <= 60 for n in counts)
+    assert len({c.occluder_rate for c in scenes.values()}) > 3 and len({c.appearance_strength for c in scenes.values()}) > 3
+
+
+def test_suite_layout_is_read_back(suite):
+    scenes = read_benchmark(suite)
+    assert [s.name for s in scenes] == list(SUITES["tiny-benchmark"])
+    assert [[m.name for m in s.metas] for s in scenes] == [["front"], ["front", "rear"]]
+
+
+def test_sg_bench_writes_tables_and_resumes(suite, preset, tmp_path, capsys):
+    output = tmp_path / "results"
+    args = [str(suite), "--output", str(output), "--preset", str(preset), "--train-steps", "20",
+            "--initialisers", "colmap", "perturbed", "--ablations", "none", "--noise-levels", "2", "8", "--sizes", "3"]
+    assert bench_main(args) == 0, capsys.readouterr().err
+    records = [json.loads(p.read_text()) for p in sorted((output / "runs").glob("*/*/*.json"))]
+    # per meta-image: 2 starts + 1 ablation + 2 noise levels + 1 subset of 3 photos; three meta-images
+    assert len(records) == 3 * 6
+    for record in records:
+        if record["run"] == "perturbed":
+            assert record["before"]["dR"] == pytest.approx(5.0, abs=1e-6) and record["after"] is not None
+        if record["run"].startswith("size-3"):
+            assert record["photos"] == 3
+    rows = list(csv.DictReader((output / "results.csv").open()))
+    assert len(rows) == len(records)
+    results = (output / "results.md").read_text()
+    for expected in ("| perturbed (start) | 5.00 |", "| ours (perturbed init) |", "| colmap (start) |", "MTA(3,0.1)", "| none |", "| tiny-b | rear | 4 |"):
+        assert expected in results, expected
+    assert (output / "robustness_noise.png").stat().st_size > 0 and (output / "robustness_size.png").stat().st_size > 0
+
+    # Resumption: finished runs and references are reused; a missing record is run again.
+    stamps = {p: p.stat().st_mtime_ns for p in [*(output / "runs").glob("*/*/*.json"), *(output / "references").glob("*/reference.json")]}
+    removed = output / "runs" / "tiny-b" / "rear" / "noise-8.json"
+    removed.unlink()
+    capsys.readouterr()
+    assert bench_main(args) == 0
+    printed = capsys.readouterr().out
+    run_lines = [line for line in printed.splitlines() if line.startswith("tiny-")]
+    assert len(run_lines) == 1 and run_lines[0].startswith("tiny-b/rear noise-8:"), printed
+    assert removed.is_file()
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items() if p != removed)
+
+
+def test_bad_layout_is_one_sentence(suite, tmp_path, capsys):
+    broken = tmp_path / "broken"
+    shutil.copytree(suite / "tiny-a", broken / "tiny-a")
+    (broken / "tiny-a" / "meta" / "front" / "gt_transform.json").unlink()
+    capsys.readouterr()
+    assert bench_main([str(broken), "--output", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "gt_transform.json" in err and len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
+    with pytest.raises(BenchmarkLayoutError, match="does not exist"):
+        read_benchmark(tmp_path / "nowhere")

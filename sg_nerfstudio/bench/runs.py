@@ -140,13 +140,17 @@ class SceneRunner:
     def run(self, meta: BenchmarkMeta, loaded: MetaImage, spec: RunSpec, on_step: Callable[[int], None]) -> dict:
         """Execute one run and write its record."""
         seed = self.options.seed + spec.sample
-        rng = np.random.default_rng([seed, sum(map(ord, meta.name)), sum(map(ord, spec.name))])
+        meta_key = sum(map(ord, meta.name))
         subject = loaded
         if spec.subset_size:
-            chosen = sorted(rng.choice(len(loaded.photos), spec.subset_size, replace=False).tolist())
+            subset_rng = np.random.default_rng([seed, meta_key, spec.subset_size])
+            chosen = sorted(subset_rng.choice(len(loaded.photos), spec.subset_size, replace=False).tolist())
             subject = replace(loaded, photos=[loaded.photos[i] for i in chosen])
+        # The same random direction for every run of a meta-image with the same kind of start, so ablation rows
+        # start from one transform and noise levels differ only in magnitude.
+        start_rng = np.random.default_rng([seed, meta_key, sum(map(ord, spec.start))])
         started = time.perf_counter()
-        start, failure = self.start(meta, subject, spec, rng)
+        start, failure = self.start(meta, subject, spec, start_rng)
         record = {
             "scene": self.scene.name, "meta": meta.name, "photos": len(subject.photos), "run": spec.name, "family": spec.family,
             "start": spec.start, "label": spec.label, "init_failure": failure, "init_time_s": time.perf_counter() - started,

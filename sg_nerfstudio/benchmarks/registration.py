@@ -32,6 +32,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.bench.runs import ABLATIONS
 from sg_nerfstudio.registration.meta_image import MetaImage, load_meta_image
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.optimize import RegistrationSettings, prepare_photos, register
@@ -41,15 +42,6 @@ from sg_nerfstudio.scripts.register_meta import load_settings_preset
 from sg_nerfstudio.synthetic import generate_scene
 from sg_nerfstudio.synthetic.generator import read_scene_config
 
-ABLATIONS = {
-    "full": {},
-    "decoded-features": {"objective": "features"},
-    "photometric": {"objective": "photometric"},
-    "l2": {"loss": "l2"},
-    "none": {"robust": "none"},
-    "fixed-lts": {"robust": "fixed-lts"},
-    "irls": {"robust": "irls"},
-}
 
 
 @dataclass

@@ -62,6 +62,10 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, tmp_path, capsys):
             assert record["before"]["dR"] == pytest.approx(5.0, abs=1e-6) and record["after"] is not None
         if record["run"].startswith("size-3"):
             assert record["photos"] == 3
+    by_run = {(r["scene"], r["meta"], r["run"]): r for r in records}
+    for scene, meta, run in by_run:
+        if run == "perturbed":  # ablation rows start where the perturbed row does
+            assert by_run[(scene, meta, "ablation-none")]["before"] == by_run[(scene, meta, run)]["before"]
     rows = list(csv.DictReader((output / "results.csv").open()))
     assert len(rows) == len(records)
     results = (output / "results.md").read_text()

@@ -167,6 +167,8 @@ def run(args: RegisterMetaArgs, console: Console) -> list[dict]:
             raise ArgumentError(f"Result directory {target} exists; pass --overwrite to replace it.")
     if MERGED in names and len(metas) > 1:
         raise ArgumentError(f"A meta-image may not be named '{MERGED}' when several are registered (that is where they are merged).")
+    if args.merge_reference and "reference" in names:
+        raise ArgumentError("With --merge-reference no meta-image may be named 'reference' (the reference's images are named reference/<name> in merged/).")
     for meta in metas:
         if meta.unlisted:
             console.print(f"[yellow]{meta.name}: {len(meta.unlisted)} files in images/ are not in the COLMAP model and are ignored: {', '.join(meta.unlisted[:5])}[/yellow]")

@@ -1,6 +1,6 @@
 """`sg-demo`: the whole pipeline on the built-in synthetic scene, on CPU, in a few minutes.
 
-    sg-demo [--output sg_demo] [--train-steps 1500] [--registration-config configs/register/fast-cpu.yaml]
+    sg-demo [--output sg_demo] [--train-steps 1200] [--registration-config configs/register/fast-cpu.yaml]
 
 1. generate the default synthetic landmark (reference capture + front and rear meta-images);
 2. train a small sg-feature-splat reference on CPU with the weight-free offline teacher;

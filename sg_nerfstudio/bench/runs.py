@@ -31,7 +31,7 @@ from sg_nerfstudio.bench.layout import BenchmarkMeta, BenchmarkScene
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
-from sg_nerfstudio.registration.meta_image import MetaImage, load_meta_image
+from sg_nerfstudio.registration.meta_image import MetaImage
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.optimize import RegistrationSettings, register
 from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
@@ -190,10 +190,6 @@ class SceneRunner:
 
 def summary(errors) -> dict:
     return {"dR": errors.rotation_deg, "dT": errors.translation, "accurate": errors.accurate(), "outlier": errors.outlier()}
-
-
-def load_meta(meta: BenchmarkMeta) -> MetaImage:
-    return load_meta_image(meta.directory)
 
 
 def read_records(output: Path) -> list[dict]:

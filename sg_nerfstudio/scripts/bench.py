@@ -28,8 +28,9 @@ from rich.text import Text
 
 from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.report import write_results
-from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, load_meta, read_records, train_reference
+from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
 from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.registration.meta_image import load_meta_image
 from sg_nerfstudio.scripts.register_meta import load_settings_preset
 
 Start = Literal["colmap", "generalized", "perturbed"]
@@ -81,7 +82,7 @@ def run(args: BenchArgs, console: Console) -> Path:
             progress.update(step_task, completed=args.train_steps)
             runner = SceneRunner(scene, config, options, args.output)
             for meta in scene.metas:
-                loaded = load_meta(meta)
+                loaded = load_meta_image(meta.directory)
                 for spec in runner.pending(meta, len(loaded.photos)):
                     progress.reset(step_task, total=options.settings.steps, description=f"{scene.name}/{meta.name}: {spec.name}")
                     record = runner.run(meta, loaded, spec, lambda s: progress.update(step_task, completed=s + 1))

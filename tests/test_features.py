@@ -126,6 +126,19 @@ def test_offline_descriptor_shape_and_appearance_invariance():
     assert ((other - features).norm() / features.norm()).item() > 5 * feature_change
 
 
+def test_offline_sobel_matches_the_convolution_it_replaces():
+    from sg_nerfstudio.features.offline import _sobel
+
+    channels = torch.rand(3, 17, 23, generator=torch.Generator().manual_seed(0))
+    kernel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
+    kernels = torch.stack([kernel, kernel.T])[:, None]  # [2, 1, 3, 3]: d/dx, d/dy
+    expected = torch.nn.functional.conv2d(torch.nn.functional.pad(channels[:, None], (1, 1, 1, 1), mode="replicate"), kernels)
+    gx, gy = _sobel(channels)
+    assert torch.allclose(gx, expected[:, 0], atol=1e-6) and torch.allclose(gy, expected[:, 1], atol=1e-6)
+    ramp = torch.arange(5.0)[None, None].expand(1, 4, 5)  # brightness rising to the right
+    assert torch.allclose(_sobel(ramp)[0][:, :, 1:-1], torch.ones(1, 4, 3))  # kernel / 8: the slope itself
+
+
 class CountingTeacher:
     """Wraps a teacher and counts extractions."""
 

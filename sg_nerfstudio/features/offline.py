@@ -43,8 +43,6 @@ class OfflineTeacher:
         self.input_size = config.input_size or DEFAULT_INPUT_SIZE
         self.grid_size = checked_grid(self.input_size, CELL, "offline descriptor cell size")
         self.device = resolve_device(config.device)
-        sobel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
-        self.kernels = torch.stack([sobel, sobel.T])[:, None].to(self.device)  # [2, 1, 3, 3]
 
     def settings(self) -> dict:
         return {"teacher": "offline_hog", "version": VERSION, "input_size": self.input_size, "cell": CELL,
@@ -68,8 +66,8 @@ class OfflineTeacher:
         rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
         pixels = F.interpolate(pixels, size=(rows * CELL, columns * CELL), mode="bilinear", align_corners=False, antialias=True)
         log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
-        gradients = F.conv2d(F.pad(log_channels, (1, 1, 1, 1), mode="replicate"), self.kernels.to(pixels.device))  # [3, 2, S, S]
-        histogram = _soft_orientation_histogram(gradients[:, 0], gradients[:, 1]).sum(0)  # [B, S, S]
+        gx, gy = _sobel(log_channels[:, 0])  # [3, S, S] each
+        histogram = _soft_orientation_histogram(gx, gy).sum(0)  # [B, S, S]
         cells = F.avg_pool2d(histogram[None], CELL)  # [1, B, G, G]
         blocks = []
         for width in POOLING_CELLS:
@@ -79,6 +77,21 @@ class OfflineTeacher:
             blocks.append(pooled / torch.sqrt(norm**2 + floor**2))
         features = torch.cat(blocks, dim=1) / math.sqrt(len(POOLING_CELLS))
         return features[0].permute(1, 2, 0)
+
+
+def _sobel(channels: Tensor) -> tuple[Tensor, Tensor]:
+    """Sobel derivatives (x right, y down; kernel / 8, replicate padding) of [C, H, W] -> two [C, H, W].
+
+    Written as separable shifted sums rather than `conv2d`: a 3x3 convolution of single-channel maps is
+    one of the slowest paths of CPU convolution (its backward above all), and registration differentiates
+    through it for every render of every step.
+    """
+    padded = F.pad(channels[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]  # [C, H + 2, W + 2]
+    smooth_rows = padded[:, :-2] + 2.0 * padded[:, 1:-1] + padded[:, 2:]  # [C, H, W + 2]
+    smooth_columns = padded[:, :, :-2] + 2.0 * padded[:, :, 1:-1] + padded[:, :, 2:]  # [C, H + 2, W]
+    gx = (smooth_rows[:, :, 2:] - smooth_rows[:, :, :-2]) / 8.0
+    gy = (smooth_columns[:, 2:] - smooth_columns[:, :-2]) / 8.0
+    return gx, gy
 
 
 def _soft_orientation_histogram(gx: Tensor, gy: Tensor) -> Tensor:

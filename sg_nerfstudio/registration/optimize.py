@@ -195,22 +195,33 @@ class Objective:
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
 
     def __call__(self, matrix: Tensor, scale: Tensor, indices) -> tuple[Tensor, Tensor]:
-        """[B] losses and [B] covered fractions of the photos `indices` under `matrix` [4, 4] (float64)."""
-        losses, coverage = [], []
-        for index in indices:
-            photo = self.photos[index]
+        """[B] losses and [B] covered fractions of the photos `indices` under `matrix` [4, 4] (float64).
+
+        Photos of one render size are rendered in one batch (one projection graph for all their cameras)."""
+        losses, coverage = [None] * len(indices), [None] * len(indices)
+        for size, positions in self.same_size_groups(indices).items():
             start = time.perf_counter()
-            viewmat = camera_viewmat(photo.cam_from_meta, matrix[:3, :3], matrix[:3, 3], scale)
+            photos = [self.photos[indices[position]] for position in positions]
+            viewmats = torch.stack([camera_viewmat(photo.cam_from_meta, matrix[:3, :3], matrix[:3, 3], scale) for photo in photos])
             rendered, alpha = self.reference.render(
-                viewmat[None], photo.K[None], photo.width, photo.height, self.near_plane,
+                viewmats, torch.stack([photo.K for photo in photos]), size[0], size[1], self.near_plane,
                 "features" if self.settings.objective == "features" else "photometric", self.settings.backend,
             )
             middle = time.perf_counter()
-            losses.append(per_image_loss(self.on_target_grid(rendered, photo.target), photo.target[None], self.settings.loss)[0])
-            coverage.append(alpha.detach().mean())
+            for camera, (position, photo) in enumerate(zip(positions, photos)):
+                on_grid = self.on_target_grid(rendered[camera : camera + 1], photo.target)
+                losses[position] = per_image_loss(on_grid, photo.target[None], self.settings.loss)[0]
+                coverage[position] = alpha[camera].detach().mean()
             self.timings["render"] += middle - start
             self.timings["loss"] += time.perf_counter() - middle
         return torch.stack(losses), torch.stack(coverage)
+
+    def same_size_groups(self, indices) -> dict[tuple[int, int], list[int]]:
+        """Positions in `indices` grouped by the (width, height) their photos render at."""
+        groups: dict[tuple[int, int], list[int]] = {}
+        for position, index in enumerate(indices):
+            groups.setdefault((self.photos[index].width, self.photos[index].height), []).append(position)
+        return groups
 
     def on_target_grid(self, rendered: Tensor, target: Tensor) -> Tensor:
         """[1, H, W, C] render -> [1, rows, columns, D] comparable with the target map [rows, columns, D]."""

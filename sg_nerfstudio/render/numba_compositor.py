@@ -86,8 +86,17 @@ def _pair_alpha(means2d, conics, opacities, max_sigma, g, px, py):  # pragma: no
     return alpha, sigma, dx, dy, raw <= MAX_ALPHA
 
 
+@njit(inline="always")
+def _box_in_tile(boxes, g, x0, y0, cols, rows):  # pragma: no cover - compiled
+    """Pixel range [bx0, bx1) x [by0, by1) of Gaussian g's support box (boxes[g] = x0, y0, nx, ny) inside
+    the tile of `cols` x `rows` pixels starting at (x0, y0): the only pixels of the tile it can reach."""
+    bx0, by0 = max(boxes[g, 0], x0), max(boxes[g, 1], y0)
+    bx1, by1 = min(boxes[g, 0] + boxes[g, 2], x0 + cols), min(boxes[g, 1] + boxes[g, 3], y0 + rows)
+    return bx0, max(bx1, bx0), by0, max(by1, by0)
+
+
 @njit(parallel=True, cache=True, fastmath={"reassoc", "contract"})
-def _forward(means2d, conics, opacities, max_sigma, colors, tile_offsets, tile_gaussians, width, height, tiles_x, tile,
+def _forward(means2d, conics, opacities, max_sigma, colors, boxes, tile_offsets, tile_gaussians, width, height, tiles_x, tile,
              render, final_transmittance, list_end):  # pragma: no cover - compiled
     """Fill render [H*W, D], final_transmittance [H*W] (float64) and list_end [H*W] (one past the
     last contributing entry of the pixel's tile list).
@@ -110,24 +119,26 @@ def _forward(means2d, conics, opacities, max_sigma, colors, tile_offsets, tile_g
             if alive == 0:
                 break
             g = tile_gaussians[k]
-            for i in range(n):
-                if done[i]:
-                    continue
-                y, x = y0 + i // cols, x0 + i % cols
-                alpha, _, _, _, _ = _pair_alpha(means2d, conics, opacities, max_sigma, g, x + 0.5, y + 0.5)
-                if alpha == 0.0:
-                    continue
-                next_transmittance = transmittance[i] * (1.0 - alpha)
-                if next_transmittance <= TRANSMITTANCE_THRESHOLD:
-                    done[i] = True
-                    alive -= 1
-                    continue
-                weight = alpha * transmittance[i]
-                p = y * width + x
-                for d in range(channels):
-                    render[p, d] += weight * colors[g, d]
-                transmittance[i] = next_transmittance
-                last[i] = k + 1
+            bx0, bx1, by0, by1 = _box_in_tile(boxes, g, x0, y0, cols, rows)
+            for y in range(by0, by1):
+                for x in range(bx0, bx1):
+                    i = (y - y0) * cols + x - x0
+                    if done[i]:
+                        continue
+                    alpha, _, _, _, _ = _pair_alpha(means2d, conics, opacities, max_sigma, g, x + 0.5, y + 0.5)
+                    if alpha == 0.0:
+                        continue
+                    next_transmittance = transmittance[i] * (1.0 - alpha)
+                    if next_transmittance <= TRANSMITTANCE_THRESHOLD:
+                        done[i] = True
+                        alive -= 1
+                        continue
+                    weight = alpha * transmittance[i]
+                    p = y * width + x
+                    for d in range(channels):
+                        render[p, d] += weight * colors[g, d]
+                    transmittance[i] = next_transmittance
+                    last[i] = k + 1
         for i in range(n):
             p = (y0 + i // cols) * width + x0 + i % cols
             final_transmittance[p] = transmittance[i]
@@ -135,7 +146,7 @@ def _forward(means2d, conics, opacities, max_sigma, colors, tile_offsets, tile_g
 
 
 @njit(parallel=True, cache=True, fastmath={"reassoc", "contract"})
-def _backward(means2d, conics, opacities, max_sigma, colors, tile_offsets, tile_gaussians, width, height, tiles_x, tile,
+def _backward(means2d, conics, opacities, max_sigma, colors, boxes, tile_offsets, tile_gaussians, width, height, tiles_x, tile,
               final_transmittance, list_end, grad_render, grad_alpha, with_color_grad,
               grad_means2d, grad_conics, grad_opacities, grad_colors):  # pragma: no cover - compiled
     """Accumulate gradients into per-worker buffers grad_* [workers, M, ...]; worker w owns tiles w, w+W, ...
@@ -171,10 +182,12 @@ def _backward(means2d, conics, opacities, max_sigma, colors, tile_offsets, tile_
                 g = tile_gaussians[k]
                 touched = False
                 g_mx = g_my = g_a = g_b = g_c = g_o = 0.0
-                for i in range(n):
+                bx0, bx1, by0, by1 = _box_in_tile(boxes, g, x0, y0, cols, rows)
+                for pixel in range((bx1 - bx0) * (by1 - by0)):
+                    y, x = by0 + pixel // (bx1 - bx0), bx0 + pixel % (bx1 - bx0)
+                    i = (y - y0) * cols + x - x0
                     if k >= ends[i]:
                         continue
-                    y, x = y0 + i // cols, x0 + i % cols
                     alpha, _, dx, dy, unclamped = _pair_alpha(means2d, conics, opacities, max_sigma, g, x + 0.5, y + 0.5)
                     if alpha == 0.0:
                         continue
@@ -235,14 +248,15 @@ class _TileComposite(torch.autograd.Function):
         )
         # sigma beyond ln(255 o) cannot reach alpha 1/255: a cheap test before exp (margin for rounding)
         max_sigma = np.log(np.maximum(255.0 * opacities_np.astype(np.float64), 1e-30)) + 1e-3
-        x0, y0, nx, ny = (b.numpy() for b in support_boxes(means2d.detach(), cov2d.detach(), opacities.detach(), width, height))
+        boxes = torch.stack(support_boxes(means2d.detach(), cov2d.detach(), opacities.detach(), width, height), dim=1).numpy()
+        x0, y0, nx, ny = boxes.T.copy()
         tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
         tile_offsets, tile_gaussians = _bin_by_tile(x0, y0, nx, ny, tiles_x, tiles_y, TILE_SIZE)
         n_pixels = width * height
         render = np.zeros((n_pixels, colors_np.shape[1]), dtype=colors_np.dtype)
         final_transmittance = np.ones(n_pixels, dtype=np.float64)
         list_end = np.zeros(n_pixels, dtype=np.int64)
-        gaussians = (means2d_np, conics_np, opacities_np, max_sigma, colors_np)
+        gaussians = (means2d_np, conics_np, opacities_np, max_sigma, colors_np, boxes)
         plan = (tile_offsets, tile_gaussians, width, height, tiles_x, TILE_SIZE)
         _forward(*gaussians, *plan, render, final_transmittance, list_end)
         ctx.gaussians, ctx.plan, ctx.pixel_state = gaussians, plan, (final_transmittance, list_end)
@@ -251,7 +265,7 @@ class _TileComposite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_render, grad_alpha):
-        colors = ctx.gaussians[-1]
+        colors = ctx.gaussians[4]
         workers = numba.get_num_threads()
         m, channels = colors.shape
         with_color_grad = bool(ctx.needs_input_grad[3])

@@ -113,12 +113,64 @@ def project_gaussians(
         calc_compensations: return the antialiasing opacity factor sqrt(det(cov) / det(cov + eps2d I)).
     """
     means_c, covars_c = world_to_camera(means, covars, viewmats)
-    tx, ty, tz = torch.unbind(means_c, dim=-1)  # [C, N]
+    intrinsics = tuple(Ks[:, row, column, None] for row, column in ((0, 0), (1, 1), (0, 2), (1, 2)))  # [C, 1] each
+    return _project_camera_frame(means_c, covars_c, intrinsics, width, height, eps2d, near_plane, far_plane, calc_compensations)
+
+
+def project_gaussians_packed(
+    means: Tensor,
+    covars: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    camera_ids: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    calc_compensations: bool = False,
+) -> ProjectedGaussians:
+    """`project_gaussians` for a list of (Gaussian, camera) entries instead of every Gaussian in every camera.
+
+    gsplat's "packed" layout: entry s is Gaussian `means[s]` seen by camera `camera_ids[s]`. The CPU backend
+    uses it to project what several cameras see in one batch of tensor operations (and one autograd graph)
+    rather than one per camera.
+
+    Args:
+        means: [S, 3], covars: [S, 3, 3] world-frame Gaussians, one row per entry.
+        viewmats: [C, 4, 4], Ks: [C, 3, 3] as in `project_gaussians`.
+        camera_ids: [S] int64 camera of each entry.
+
+    Returns:
+        `ProjectedGaussians` whose fields have the leading shape [S] instead of [C, N].
+    """
+    entry_viewmats = viewmats.index_select(0, camera_ids)  # [S, 4, 4]; backward is a cheap index_add
+    rotations = entry_viewmats[:, :3, :3]
+    means_c = (rotations @ means[:, :, None])[:, :, 0] + entry_viewmats[:, :3, 3]
+    covars_c = rotations @ covars @ rotations.transpose(-1, -2)
+    entry_Ks = Ks.index_select(0, camera_ids)
+    intrinsics = tuple(entry_Ks[:, row, column] for row, column in ((0, 0), (1, 1), (0, 2), (1, 2)))  # [S] each
+    return _project_camera_frame(means_c, covars_c, intrinsics, width, height, eps2d, near_plane, far_plane, calc_compensations)
+
+
+def _project_camera_frame(
+    means_c: Tensor,
+    covars_c: Tensor,
+    intrinsics: tuple[Tensor, Tensor, Tensor, Tensor],
+    width: int,
+    height: int,
+    eps2d: float,
+    near_plane: float,
+    far_plane: float,
+    calc_compensations: bool,
+) -> ProjectedGaussians:
+    """EWA projection of camera-frame Gaussians means_c [..., 3], covars_c [..., 3, 3] with pinhole
+    intrinsics (fx, fy, cx, cy), each broadcastable to the leading shape [...]."""
+    tx, ty, tz = torch.unbind(means_c, dim=-1)
     # Gaussians exactly in the camera plane are culled below; keep their arithmetic finite so that
     # no inf/NaN leaks into gradients of the other Gaussians.
     tz = torch.where(tz.abs() < 1e-10, torch.full_like(tz, 1e-10), tz)
-    fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]  # [C, 1]
-    cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    fx, fy, cx, cy = intrinsics
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
     lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
     lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
@@ -129,7 +181,7 @@ def project_gaussians(
     jac = torch.stack(
         [fx / tz, zeros, -fx * tx_clamped / tz**2, zeros, fy / tz, -fy * ty_clamped / tz**2], dim=-1
     ).reshape(tz.shape + (2, 3))
-    cov = jac @ covars_c @ jac.transpose(-1, -2)  # [C, N, 2, 2]
+    cov = jac @ covars_c @ jac.transpose(-1, -2)  # [..., 2, 2]
     cov_xx, cov_xy, cov_yy = cov[..., 0, 0], 0.5 * (cov[..., 0, 1] + cov[..., 1, 0]), cov[..., 1, 1]
 
     det_orig = cov_xx * cov_yy - cov_xy * cov_xy

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from sg_nerfstudio.render.cpu_rasterizer import composite_camera, front_to_back
-from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians
+from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians, project_gaussians_packed
 from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
 
 Backend = Literal["auto", "gsplat", "numba", "torch"]
@@ -147,8 +147,9 @@ def _rasterize_cpu(
     means, covars, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane,
     eps2d, sh_degree, backgrounds, render_mode, rasterize_mode, backend,
 ) -> tuple[Tensor, Tensor, dict]:
-    """CPU backends. Culling runs without gradients on all N Gaussians; each camera then re-projects only
-    its visible ones with gradients, so backward work scales with what the camera sees."""
+    """CPU backends. Culling runs without gradients on all N Gaussians; the visible (Gaussian, camera)
+    pairs of all C cameras are then projected with gradients in one packed batch, so backward work scales
+    with what the cameras see and the number of tensor operations does not grow with C."""
     if backend == "numba":
         from sg_nerfstudio.render.numba_compositor import composite_camera_tiled as composite
     else:
@@ -159,35 +160,31 @@ def _rasterize_cpu(
     with torch.no_grad():
         culling = project_gaussians(means, covars, viewmats, Ks, **projection_args)
     visible_ids = [front_to_back(culling.radii[cam], culling.depths[cam]) for cam in range(n_cameras)]
+    counts = [len(ids) for ids in visible_ids]
+    entry_ids = torch.cat(visible_ids) if n_cameras else torch.zeros(0, dtype=torch.long)  # [S] packed entries
+    entry_cameras = torch.repeat_interleave(torch.arange(n_cameras), torch.tensor(counts, dtype=torch.long))
+    proj = project_gaussians_packed(
+        means.index_select(0, entry_ids), covars.index_select(0, entry_ids), viewmats, Ks, entry_cameras,
+        calc_compensations=antialiased, **projection_args,
+    )
+    entry_opacities = opacities.index_select(0, entry_ids)
+    if proj.compensations is not None:
+        entry_opacities = entry_opacities * proj.compensations
+    entry_colors = _entry_colors(colors, sh_degree, means, viewmats, entry_ids, entry_cameras)
+    if render_mode in ("RGB+D", "RGB+ED"):
+        entry_colors = torch.cat([entry_colors, proj.depths[:, None]], dim=-1)
+    elif render_mode in ("D", "ED"):
+        entry_colors = proj.depths[:, None]
 
     # means2d [C, N, 2] for DefaultStrategy: the grad it reads after backward is the gradient of the
     # loss w.r.t. this very tensor, so rendering gathers the visible means back out of it.
-    means2d_all, opacities_all = [], []
-    projections = []
-    for cam, ids in enumerate(visible_ids):
-        proj = project_gaussians(
-            means.index_select(0, ids), covars.index_select(0, ids), viewmats[cam : cam + 1], Ks[cam : cam + 1],
-            calc_compensations=antialiased, **projection_args,
-        )
-        cam_opacities = opacities.index_select(0, ids)
-        if proj.compensations is not None:
-            cam_opacities = cam_opacities * proj.compensations[0]
-        projections.append((proj, cam_opacities))
-        means2d_all.append(culling.means2d[cam].index_copy(0, ids, proj.means2d[0]))
-        opacities_all.append(opacities.detach().clone().index_copy(0, ids, cam_opacities.detach()))
-    means2d = torch.stack(means2d_all) if n_cameras else culling.means2d
-
+    entry_opacities, entry_means2d = entry_opacities.split(counts), proj.means2d.split(counts)
+    means2d = torch.stack([culling.means2d[cam].index_copy(0, ids, entry_means2d[cam]) for cam, ids in enumerate(visible_ids)]) if n_cameras else culling.means2d
+    opacities_all = [opacities.detach().clone().index_copy(0, ids, entry_opacities[cam].detach()) for cam, ids in enumerate(visible_ids)]
     renders, alphas = [], []
-    for cam, (ids, (proj, cam_opacities)) in enumerate(zip(visible_ids, projections)):
-        cam_colors = _camera_colors(colors, sh_degree, means, viewmats[cam], ids)
-        depths = proj.depths[0]
-        if render_mode in ("RGB+D", "RGB+ED"):
-            cam_colors = torch.cat([cam_colors, depths[:, None]], dim=-1)
-        elif render_mode in ("D", "ED"):
-            cam_colors = depths[:, None]
-        render, alpha = composite(
-            means2d[cam].index_select(0, ids), proj.conics[0], proj.cov2d[0], cam_opacities, cam_colors, width, height
-        )
+    per_camera = zip(visible_ids, proj.conics.split(counts), proj.cov2d.split(counts), entry_opacities, entry_colors.split(counts))
+    for cam, (ids, cam_conics, cam_cov2d, cam_opacities, cam_colors) in enumerate(per_camera):
+        render, alpha = composite(means2d[cam].index_select(0, ids), cam_conics, cam_cov2d, cam_opacities, cam_colors, width, height)
         renders.append(render)
         alphas.append(alpha)
     render = torch.stack(renders)
@@ -218,14 +215,17 @@ def _rasterize_cpu(
     return render, alpha, info
 
 
-def _camera_colors(colors: Tensor, sh_degree: Optional[int], means: Tensor, viewmat: Tensor, ids: Tensor) -> Tensor:
-    """Colours [M, D] of the Gaussians `ids` [M] for one camera (SH evaluated towards its centre)."""
+def _entry_colors(
+    colors: Tensor, sh_degree: Optional[int], means: Tensor, viewmats: Tensor, entry_ids: Tensor, entry_cameras: Tensor
+) -> Tensor:
+    """Colours [S, D] of packed (Gaussian `entry_ids`, camera `entry_cameras`) entries, SH evaluated
+    towards each entry's camera centre."""
     if sh_degree is None:
-        return colors.index_select(0, ids)
-    rot, trans = viewmat[:3, :3], viewmat[:3, 3]
-    camera_centre = -rot.transpose(0, 1) @ trans
-    dirs = means.index_select(0, ids) - camera_centre
-    return torch.clamp_min(evaluate_sh(sh_degree, dirs, colors.index_select(0, ids)) + 0.5, 0.0)
+        return colors.index_select(0, entry_ids)
+    rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3]
+    camera_centres = -(rotations.transpose(1, 2) @ translations[:, :, None])[:, :, 0]  # [C, 3]
+    dirs = means.index_select(0, entry_ids) - camera_centres.index_select(0, entry_cameras)
+    return torch.clamp_min(evaluate_sh(sh_degree, dirs, colors.index_select(0, entry_ids)) + 0.5, 0.0)
 
 
 def _check_inputs(means, quats, scales, covars, opacities, colors, viewmats, Ks, width, height, sh_degree, render_mode) -> None:

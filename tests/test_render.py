@@ -8,7 +8,12 @@ from gsplat.cuda._torch_impl import _fully_fused_projection, _spherical_harmonic
 
 from sg_nerfstudio.render import rasterize, resolve_backend
 from sg_nerfstudio.render.cpu_rasterizer import brute_force_composite
-from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians
+from sg_nerfstudio.render.projection import (
+    covariances_from_quats_scales,
+    cull_gaussians,
+    project_gaussians,
+    project_gaussians_packed,
+)
 
 CPU_BACKENDS = ("numba", "torch")  # tile compositor (default) and the pure-torch pair compositor
 
@@ -65,6 +70,28 @@ def test_projection_matches_gsplat_reference(seed):
     torch.testing.assert_close(ours.depths, depths)
     torch.testing.assert_close(ours.conics[valid], conics[valid], rtol=1e-4, atol=1e-6)
     torch.testing.assert_close(ours.compensations[valid], compensations[valid], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_cheap_cull_keeps_every_visible_gaussian_and_packed_projection_matches(seed):
+    means, quats, scales, _, _ = random_scene(800, seed, spread=4.0)
+    means[:30, 2] = -means[:30, 2]  # some behind the camera
+    scales[:40] *= 8.0  # large ones whose centres are off-screen but whose footprint is not
+    viewmats, Ks = look_at_viewmats(3, seed), intrinsics(3, 40, 30, 35.0)
+    covars = covariances_from_quats_scales(quats, scales)
+    dense = project_gaussians(means, covars, viewmats, Ks, 40, 30, near_plane=0.2)
+    depths, candidates = cull_gaussians(means, covars, viewmats, Ks, 40, 30, near_plane=0.2)
+    visible = dense.radii > 0
+    assert bool(candidates[visible].all())  # a superset of the exact test
+    assert int(candidates.sum()) < candidates.numel()  # that still culls
+    torch.testing.assert_close(depths, dense.depths)
+    cameras, ids = torch.nonzero(candidates, as_tuple=True)
+    packed = project_gaussians_packed(means[ids], covars[ids], viewmats, Ks, cameras, 40, 30, near_plane=0.2)
+    assert torch.equal(packed.radii, dense.radii[cameras, ids])
+    torch.testing.assert_close(packed.means2d, dense.means2d[cameras, ids])
+    torch.testing.assert_close(packed.conics, dense.conics[cameras, ids])
+    _, _, info = rasterize(means, quats, scales, torch.full((800,), 0.5), torch.rand(800, 3), viewmats, Ks, 40, 30, near_plane=0.2)
+    assert torch.equal(info["radii"], dense.radii)
 
 
 def dense_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, **kw):

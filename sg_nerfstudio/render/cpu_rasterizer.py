@@ -241,10 +241,10 @@ def empty_image(means2d, conics, cov2d, opacities, colors, width: int, height: i
     return zero + colors.new_zeros(height, width, colors.shape[-1]), zero + colors.new_zeros(height, width, 1)
 
 
-def front_to_back(radii: Tensor, depths: Tensor) -> Tensor:
-    """Indices [M] of the Gaussians with radii > 0, sorted by increasing depth (ties by index)."""
-    visible = torch.nonzero(radii > 0).squeeze(1)
-    return visible[torch.argsort(depths.detach()[visible], stable=True)]
+def front_to_back(visible: Tensor, depths: Tensor) -> Tensor:
+    """Indices [M] of the Gaussians where `visible` [N] (bool) is set, sorted by increasing depth (ties by index)."""
+    ids = torch.nonzero(visible).squeeze(1)
+    return ids[torch.argsort(depths.detach()[ids], stable=True)]
 
 
 def _gaussian_table(means2d: Tensor, conics: Tensor, opacities: Tensor) -> Tensor:

@@ -117,6 +117,45 @@ def project_gaussians(
     return _project_camera_frame(means_c, covars_c, intrinsics, width, height, eps2d, near_plane, far_plane, calc_compensations)
 
 
+@torch.no_grad()
+def cull_gaussians(
+    means: Tensor,
+    covars: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+) -> tuple[Tensor, Tensor]:
+    """Cheap conservative visibility: a superset of the Gaussians `project_gaussians` gives radii > 0.
+
+    Projects only the means. The exact radius is 3 sqrt(largest eigenvalue of J Sigma J^T + eps2d I) (plus
+    0.1 from its clamp), and that eigenvalue is at most ||J||_F^2 trace(Sigma), so a circle of that bound
+    around the projected mean contains the exact 3-sigma square's test; no 3x3 products for all C x N.
+
+    Returns:
+        depths [C, N] (camera-frame z of the means) and candidates [C, N] bool.
+    """
+    rot, trans = viewmats[:, :3, :3], viewmats[:, :3, 3]
+    means_c = torch.einsum("cij,nj->cni", rot, means) + trans[:, None, :]
+    tx, ty, tz = torch.unbind(means_c, dim=-1)
+    safe_tz = torch.where(tz.abs() < 1e-10, torch.full_like(tz, 1e-10), tz)
+    fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]
+    cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.15 * width / fx, cx / fx + 0.15 * width / fx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.15 * height / fy, cy / fy + 0.15 * height / fy
+    u = torch.clamp(tx / safe_tz, min=-lim_x_neg, max=lim_x_pos)  # the Jacobian's clamped direction
+    v = torch.clamp(ty / safe_tz, min=-lim_y_neg, max=lim_y_pos)
+    jacobian_sq = (fx**2 * (1 + u**2) + fy**2 * (1 + v**2)) / safe_tz**2  # ||J||_F^2
+    trace = covars.diagonal(dim1=-2, dim2=-1).sum(-1).clamp(min=0.0)  # [N]
+    radius = 3.0 * torch.sqrt(jacobian_sq * trace + eps2d + 0.1) + 1.0
+    mx, my = fx * tx / safe_tz + cx, fy * ty / safe_tz + cy
+    inside = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
+    return tz, inside & (tz > near_plane) & (tz < far_plane) & torch.isfinite(radius)
+
+
 def project_gaussians_packed(
     means: Tensor,
     covars: Tensor,

@@ -15,13 +15,19 @@ intrinsics in pixels, pixel (i, j) has its centre at (j + 0.5, i + 0.5) -- all a
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from typing import Literal, Optional
 
 import torch
 from torch import Tensor
 
 from sg_nerfstudio.render.cpu_rasterizer import composite_camera, front_to_back
-from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians, project_gaussians_packed
+from sg_nerfstudio.render.projection import (
+    ProjectedGaussians,
+    covariances_from_quats_scales,
+    cull_gaussians,
+    project_gaussians_packed,
+)
 from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
 
 Backend = Literal["auto", "gsplat", "numba", "torch"]
@@ -157,16 +163,11 @@ def _rasterize_cpu(
     n_cameras = viewmats.shape[0]
     antialiased = rasterize_mode == "antialiased"
     projection_args = dict(width=width, height=height, eps2d=eps2d, near_plane=near_plane, far_plane=far_plane)
-    with torch.no_grad():
-        culling = project_gaussians(means, covars, viewmats, Ks, **projection_args)
-    visible_ids = [front_to_back(culling.radii[cam], culling.depths[cam]) for cam in range(n_cameras)]
-    counts = [len(ids) for ids in visible_ids]
-    entry_ids = torch.cat(visible_ids) if n_cameras else torch.zeros(0, dtype=torch.long)  # [S] packed entries
-    entry_cameras = torch.repeat_interleave(torch.arange(n_cameras), torch.tensor(counts, dtype=torch.long))
-    proj = project_gaussians_packed(
-        means.index_select(0, entry_ids), covars.index_select(0, entry_ids), viewmats, Ks, entry_cameras,
-        calc_compensations=antialiased, **projection_args,
-    )
+    depths, visible = _project_visible(means, covars, viewmats, Ks, antialiased, projection_args)
+    proj, entry_ids, entry_cameras = visible.projection, visible.gaussian_ids, visible.camera_ids
+    counts = torch.bincount(entry_cameras, minlength=n_cameras).tolist()
+    visible_ids = entry_ids.split(counts)
+    radii = torch.zeros(n_cameras, means.shape[0], dtype=torch.int32).index_put_((entry_cameras, entry_ids), proj.radii)
     entry_opacities = opacities.index_select(0, entry_ids)
     if proj.compensations is not None:
         entry_opacities = entry_opacities * proj.compensations
@@ -179,8 +180,11 @@ def _rasterize_cpu(
     # means2d [C, N, 2] for DefaultStrategy: the grad it reads after backward is the gradient of the
     # loss w.r.t. this very tensor, so rendering gathers the visible means back out of it.
     entry_opacities, entry_means2d = entry_opacities.split(counts), proj.means2d.split(counts)
-    means2d = torch.stack([culling.means2d[cam].index_copy(0, ids, entry_means2d[cam]) for cam, ids in enumerate(visible_ids)]) if n_cameras else culling.means2d
-    opacities_all = [opacities.detach().clone().index_copy(0, ids, entry_opacities[cam].detach()) for cam, ids in enumerate(visible_ids)]
+    hidden_means2d = means.new_zeros(means.shape[0], 2)
+    means2d = torch.stack([hidden_means2d.index_copy(0, ids, entry_means2d[cam]) for cam, ids in enumerate(visible_ids)])
+    opacities_all = [
+        opacities.detach().clone().index_copy(0, ids, entry_opacities[cam].detach()) for cam, ids in enumerate(visible_ids)
+    ]
     renders, alphas = [], []
     per_camera = zip(visible_ids, proj.conics.split(counts), proj.cov2d.split(counts), entry_opacities, entry_colors.split(counts))
     for cam, (ids, cam_conics, cam_cov2d, cam_opacities, cam_colors) in enumerate(per_camera):
@@ -202,10 +206,9 @@ def _rasterize_cpu(
     info = {
         "camera_ids": None,
         "gaussian_ids": None,
-        "radii": culling.radii,
+        "radii": radii,
         "means2d": means2d,
-        "depths": culling.depths,
-        "conics": culling.conics,
+        "depths": depths,
         "opacities": torch.stack(opacities_all) if n_cameras else opacities[None, :0],
         "width": width,
         "height": height,
@@ -213,6 +216,42 @@ def _rasterize_cpu(
         "backend": backend,
     }
     return render, alpha, info
+
+
+@dataclass
+class VisibleEntries:
+    """Packed (Gaussian, camera) pairs with radii > 0, grouped by camera, front to back within a camera.
+
+    Attributes:
+        projection: `ProjectedGaussians` with leading shape [S] (differentiable).
+        gaussian_ids: [S] int64 index into the N Gaussians.
+        camera_ids: [S] int64 index into the C cameras, non-decreasing.
+    """
+
+    projection: ProjectedGaussians
+    gaussian_ids: Tensor
+    camera_ids: Tensor
+
+
+def _project_visible(means, covars, viewmats, Ks, antialiased: bool, projection_args: dict) -> tuple[Tensor, VisibleEntries]:
+    """Depths [C, N] of all means, and the exact projection of what each camera sees.
+
+    A cheap conservative cull (means only) picks candidates; they are projected exactly in one packed batch
+    and those the exact test rejects (radii 0) are dropped, so the result equals culling with
+    `project_gaussians` on all C x N pairs at a fraction of the cost."""
+    depths, candidates = cull_gaussians(means, covars, viewmats, Ks, **projection_args)
+    candidate_ids = [front_to_back(candidates[cam], depths[cam]) for cam in range(viewmats.shape[0])]
+    gaussian_ids = torch.cat(candidate_ids) if candidate_ids else torch.zeros(0, dtype=torch.long)
+    counts = torch.tensor([len(ids) for ids in candidate_ids], dtype=torch.long)
+    camera_ids = torch.repeat_interleave(torch.arange(len(candidate_ids)), counts)
+    proj = project_gaussians_packed(
+        means.index_select(0, gaussian_ids), covars.index_select(0, gaussian_ids), viewmats, Ks, camera_ids,
+        calc_compensations=antialiased, **projection_args,
+    )
+    kept = torch.nonzero(proj.radii > 0).squeeze(1)  # keeps the order
+    kept_fields = {field.name: getattr(proj, field.name) for field in fields(proj)}
+    kept_fields = {name: None if value is None else value.index_select(0, kept) for name, value in kept_fields.items()}
+    return depths, VisibleEntries(ProjectedGaussians(**kept_fields), gaussian_ids[kept], camera_ids[kept])
 
 
 def _entry_colors(

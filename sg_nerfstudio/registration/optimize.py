@@ -194,10 +194,12 @@ class Objective:
         self.teacher = registration_teacher(reference, settings)[1] if settings.objective == "teacher-on-render" else None
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
 
-    def __call__(self, matrix: Tensor, scale: Tensor, indices) -> tuple[Tensor, Tensor]:
-        """[B] losses and [B] covered fractions of the photos `indices` under `matrix` [4, 4] (float64).
+    def __call__(self, matrix: Tensor, scale: Tensor, indices) -> tuple[list[Tensor], Tensor]:
+        """B scalar losses and [B] covered fractions of the photos `indices` under `matrix` [4, 4] (float64).
 
-        Photos of one render size are rendered in one batch (one projection graph for all their cameras)."""
+        Photos of one render size are rendered in one batch (one projection graph for all their cameras).
+        The losses stay separate tensors so that a robust objective that ignores a photo never
+        backpropagates through its render."""
         losses, coverage = [None] * len(indices), [None] * len(indices)
         for size, positions in self.same_size_groups(indices).items():
             start = time.perf_counter()
@@ -208,13 +210,13 @@ class Objective:
                 "features" if self.settings.objective == "features" else "photometric", self.settings.backend,
             )
             middle = time.perf_counter()
-            for camera, (position, photo) in enumerate(zip(positions, photos)):
-                on_grid = self.on_target_grid(rendered[camera : camera + 1], photo.target)
+            for position, photo, render, covered in zip(positions, photos, rendered.unbind(0), alpha.detach()):
+                on_grid = self.on_target_grid(render[None], photo.target)
                 losses[position] = per_image_loss(on_grid, photo.target[None], self.settings.loss)[0]
-                coverage[position] = alpha[camera].detach().mean()
+                coverage[position] = covered.mean()
             self.timings["render"] += middle - start
             self.timings["loss"] += time.perf_counter() - middle
-        return torch.stack(losses), torch.stack(coverage)
+        return losses, torch.stack(coverage)
 
     def same_size_groups(self, indices) -> dict[tuple[int, int], list[int]]:
         """Positions in `indices` grouped by the (width, height) their photos render at."""
@@ -267,6 +269,7 @@ def register(
 
     with torch.no_grad():
         initial_losses, coverage = objective(t0, torch.tensor(scale0, dtype=torch.float64), all_indices)
+        initial_losses = torch.stack(initial_losses)
     if float(coverage.max()) < 1e-3:
         raise InitialisationError(
             f"From the initial transform the reference model renders nothing for any photo of meta-image '{meta.name}' "
@@ -304,7 +307,7 @@ def register(
         objective.timings["backward"] += time.perf_counter() - start
         if not torch.isfinite(delta).all():
             raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step}.")
-        for index, loss, keep, weight in zip(batch, losses.detach().tolist(), kept, weights):
+        for index, loss, keep, weight in zip(batch, [float(loss.detach()) for loss in losses], kept, weights):
             history.append({"step": step, "image": photos[index].name, "loss": loss, "kept": bool(keep), "weight": float(weight)})
             ignored[index] += not keep
             evaluated[index] += 1
@@ -317,7 +320,7 @@ def register(
         final_ns = (update_matrix(delta, centre) @ t0).numpy()
         final_scale = torch.tensor(decompose(final_ns)[0], dtype=torch.float64)
         final_losses, _ = objective(torch.from_numpy(final_ns), final_scale, all_indices)
-    final_losses = final_losses.double().numpy()
+    final_losses = torch.stack(final_losses).double().numpy()
     trimmed = final_losses[final_losses <= np.percentile(final_losses, settings.lts_percentile)] if settings.robust != "none" else final_losses
     return RegistrationResult(
         transform=ns_to_world @ final_ns,

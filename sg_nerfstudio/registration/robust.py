@@ -40,17 +40,18 @@ class RobustAggregator:
     def threshold(self) -> float:
         return float(np.percentile(self.previous, self.percentile))
 
-    def __call__(self, losses: Tensor, indices: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray]:
+    def __call__(self, losses: list[Tensor], indices: np.ndarray) -> tuple[Tensor, np.ndarray, np.ndarray]:
         """Aggregate the batch.
 
         Args:
-            losses: [B] per-image losses (with gradients).
+            losses: B per-image scalar losses (with gradients), kept apart so that the objective's graph
+                reaches only the images that count: an ignored image costs no backward pass.
             indices: [B] which images of the meta-image they belong to.
 
         Returns:
             the scalar objective, kept [B] bool (whether each image counted), weights [B].
         """
-        values = losses.detach().double().cpu().numpy()
+        values = torch.stack([loss.detach() for loss in losses]).double().cpu().numpy()
         if self.robust == "lts":
             kept = values <= self.threshold()
         elif self.robust == "fixed-lts":
@@ -64,7 +65,7 @@ class RobustAggregator:
             weights = 1.0 / (1.0 + (values / scale) ** 2)
         else:
             weights = kept.astype(np.float64)
-        weight_tensor = torch.as_tensor(weights, dtype=losses.dtype)
-        objective = (losses * weight_tensor).sum() / weight_tensor.sum()
+        counted = np.flatnonzero(weights > 0)
+        objective = sum(losses[i] * float(weights[i]) for i in counted) / float(weights[counted].sum())
         self.previous[indices] = values
         return objective, kept, weights

@@ -177,18 +177,21 @@ def _rasterize_cpu(
     elif render_mode in ("D", "ED"):
         entry_colors = proj.depths[:, None]
 
-    # means2d [C, N, 2] for DefaultStrategy: the grad it reads after backward is the gradient of the
-    # loss w.r.t. this very tensor, so rendering gathers the visible means back out of it.
-    entry_opacities, entry_means2d = entry_opacities.split(counts), proj.means2d.split(counts)
     hidden_means2d = means.new_zeros(means.shape[0], 2)
-    means2d = torch.stack([hidden_means2d.index_copy(0, ids, entry_means2d[cam]) for cam, ids in enumerate(visible_ids)])
-    opacities_all = [
-        opacities.detach().clone().index_copy(0, ids, entry_opacities[cam].detach()) for cam, ids in enumerate(visible_ids)
-    ]
+    if means.requires_grad:
+        # Training: DefaultStrategy reads the gradient of the loss w.r.t. info["means2d"] [C, N, 2] itself,
+        # so rendering gathers the visible means back out of that very tensor.
+        means2d = torch.stack([hidden_means2d.index_copy(0, ids, m) for ids, m in zip(visible_ids, proj.means2d.split(counts))])
+        entry_means2d = [means2d[cam].index_select(0, ids) for cam, ids in enumerate(visible_ids)]
+    else:  # frozen Gaussians (registration): no densification, no round trip
+        entry_means2d = proj.means2d.split(counts)
+        means2d = torch.stack([hidden_means2d.index_copy(0, ids, m.detach()) for ids, m in zip(visible_ids, entry_means2d)])
+    opacities_all = opacities.detach().expand(n_cameras, -1).clone()
+    opacities_all[entry_cameras, entry_ids] = entry_opacities.detach()
     renders, alphas = [], []
-    per_camera = zip(visible_ids, proj.conics.split(counts), proj.cov2d.split(counts), entry_opacities, entry_colors.split(counts))
-    for cam, (ids, cam_conics, cam_cov2d, cam_opacities, cam_colors) in enumerate(per_camera):
-        render, alpha = composite(means2d[cam].index_select(0, ids), cam_conics, cam_cov2d, cam_opacities, cam_colors, width, height)
+    per_camera = zip(entry_means2d, proj.conics.split(counts), proj.cov2d.split(counts), entry_opacities.split(counts), entry_colors.split(counts))
+    for cam_means2d, cam_conics, cam_cov2d, cam_opacities, cam_colors in per_camera:
+        render, alpha = composite(cam_means2d, cam_conics, cam_cov2d, cam_opacities, cam_colors, width, height)
         renders.append(render)
         alphas.append(alpha)
     render = torch.stack(renders)
@@ -209,7 +212,7 @@ def _rasterize_cpu(
         "radii": radii,
         "means2d": means2d,
         "depths": depths,
-        "opacities": torch.stack(opacities_all) if n_cameras else opacities[None, :0],
+        "opacities": opacities_all,
         "width": width,
         "height": height,
         "n_cameras": n_cameras,

@@ -103,7 +103,7 @@ def write_json_atomically(path: Path, record: dict) -> None:
 
 def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Callable[[int], None]) -> tuple[Path, float]:
     """config.yml of the scene's reference model (trained now or reused) and the training wall time."""
-    from sg_nerfstudio.training import cpu_config, save, train
+    from sg_nerfstudio.training import cpu_config, save, short_cpu_schedule, train
 
     directory = output / "references" / scene.name
     marker = directory / "reference.json"
@@ -112,11 +112,8 @@ def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Ca
         if Path(record["config"]).is_file():
             return Path(record["config"]), float(record["train_s"])
     teacher = TeacherConfig(name="offline", input_size=256, cache_dir=directory / "feature_cache")
-    config = cpu_config(scene.reference, directory / "runs", steps, teacher, experiment_name=scene.name)
+    config = short_cpu_schedule(cpu_config(scene.reference, directory / "runs", steps, teacher, experiment_name=scene.name))
     config.pipeline.datamanager.dataparser.colmap_path = scene.reference_model
-    config.pipeline.model.resolution_schedule = max(steps // 6, 1)
-    config.pipeline.model.stop_split_at = int(0.4 * steps)
-    config.pipeline.model.background_color = "learned"
     started = time.perf_counter()
     trainer = train(config, lambda step, *_: on_step(step))
     path = save(trainer, config)

@@ -8,7 +8,8 @@ a hand-written backward. Same image model as the torch compositor, which the tes
 
 - a Gaussian with opacity o reaches a pixel where `sigma = 0.5 d^T conic d >= 0` and
   `alpha = min(0.999, o exp(-sigma)) >= 1/255`; its support box (`cpu_rasterizer.support_boxes`)
-  decides which `TILE_SIZE` x `TILE_SIZE` tiles list it, in front-to-back order;
+  decides which `TILE_SIZE` x `TILE_SIZE` tiles list it, in front-to-back order, and which pixels of
+  such a tile it visits (only those inside the box: no pixel outside can receive alpha >= 1/255);
 - each pixel walks its tile's list front to back, `w = alpha T`, `T <- T (1 - alpha)`, and stops
   *before* the pair that would bring T to <= 1e-4 (gsplat's early stop); the loop is Gaussian-outer
   within a tile, so each Gaussian's colour row is read once per tile;

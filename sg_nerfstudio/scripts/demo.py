@@ -1,6 +1,6 @@
 """`sg-demo`: the whole pipeline on the built-in synthetic scene, on CPU, in a few minutes.
 
-    sg-demo [--output sg_demo] [--train-steps 1200] [--registration-config configs/register/fast-cpu.yaml]
+    sg-demo [--output sg_demo] [--train-steps 3000] [--registration-config configs/register/fast-cpu.yaml]
 
 1. generate the default synthetic landmark (reference capture + front and rear meta-images);
 2. train a small sg-feature-splat reference on CPU with the weight-free offline teacher;
@@ -28,14 +28,14 @@ from sg_nerfstudio.registration.meta_image import load_meta_image
 from sg_nerfstudio.registration.sim3 import about_point, perturbation
 from sg_nerfstudio.scripts.register_meta import RegisterMetaArgs, load_settings_preset, run as run_registration
 from sg_nerfstudio.synthetic import PRESETS, generate_scene
-from sg_nerfstudio.training import cpu_config, save, train
+from sg_nerfstudio.training import cpu_config, save, short_cpu_schedule, train
 
 
 @dataclass
 class DemoArgs:
     output: Path = Path("sg_demo")
     """Everything goes here: scene/, reference/ (trained model), registrations/."""
-    train_steps: int = 1200
+    train_steps: int = 3000
     """CPU training steps of the reference model."""
     registration_config: Path = Path("configs/register/fast-cpu.yaml")
     """Registration settings preset (run from the repository root, or pass a path)."""
@@ -47,9 +47,8 @@ class DemoArgs:
 
 def train_reference(scene: Path, output: Path, steps: int, console: Console) -> Path:
     """A small CPU sg-feature-splat of the reference capture; returns its config.yml."""
-    config = cpu_config(scene / "reference", output, steps, TeacherConfig(name="offline", input_size=256), experiment_name="reference")
-    config.pipeline.model.resolution_schedule = max(steps // 3, 1)
-    config.pipeline.model.stop_split_at = int(steps * 0.75)
+    teacher = TeacherConfig(name="offline", input_size=256)
+    config = short_cpu_schedule(cpu_config(scene / "reference", output, steps, teacher, experiment_name="reference"))
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console) as progress:
         task = progress.add_task("Training the reference model (CPU)", total=steps)
         trainer = train(config, lambda *_: progress.advance(task))

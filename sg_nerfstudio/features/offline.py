@@ -1,9 +1,9 @@
 """A weight-free dense descriptor: multi-scale histograms of oriented log-intensity gradients.
 
-For machines without DINOv2 weights. Per location of a grid (`input_size / CELL` cells on the long side,
-aspect ratio kept) it stacks, for each of three pooling scales (1, 2 and 4 cells), a histogram of signed
-gradient orientations of the *logarithm* of each colour channel (summed over channels, magnitude-weighted,
-soft binned), and normalises each histogram by its length plus an image-relative floor.
+For machines without DINOv2 weights. Per location of a grid (one cell = `CELL` pixels of the image
+resized to `input_size` on its long side, aspect ratio kept) it stacks, for each of three pooling
+scales (1, 2 and 4 cells), a histogram of signed gradient orientations of the *logarithm* of each colour channel (summed over channels, magnitude-weighted, soft
+binned), and normalises each histogram by its length plus an image-relative floor.
 
 Invariant (up to clipping, sensor noise and the small log offset) to:
 - global exposure (a multiplicative gain: log adds a constant, the gradient removes it);
@@ -12,11 +12,6 @@ Invariant (up to clipping, sensor noise and the small log offset) to:
 Not invariant to: viewpoint changes beyond a cell, cast shadows and shading edges, occluders, blur
 (it changes gradient magnitudes across scales). That is the right trade for registration: structure
 (windows, edges, ornaments) is kept, photometric conditions are dropped.
-
-Resolution: an image larger than the grid needs is reduced to `CELL` pixels per cell (8 x 8 pixels, as
-many as the grid needs), one smaller than that is *not* enlarged: it is described at its own resolution
-with cells of `k` x `k` pixels, k = the largest whole number of its pixels per cell (at least 1). Enlarging
-adds no information, only blur, and costs 4-6x the work (registration describes every render of every step).
 """
 
 from __future__ import annotations
@@ -35,7 +30,7 @@ ORIENTATIONS = 12
 POOLING_CELLS = (1, 2, 4)
 DEFAULT_INPUT_SIZE = 256
 LOG_OFFSET = 2.0 / 255.0
-VERSION = 3  # 2: aspect ratio kept; 3: small images described at their own resolution, not enlarged
+VERSION = 2  # 2: aspect ratio kept
 TINY = 1e-10
 
 
@@ -69,13 +64,11 @@ class OfflineTeacher:
         """
         pixels = image.permute(2, 0, 1)[None]
         rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
-        cell = cell_pixels(image.shape[0], image.shape[1], rows, columns)
-        if (image.shape[0], image.shape[1]) != (rows * cell, columns * cell):
-            pixels = F.interpolate(pixels, size=(rows * cell, columns * cell), mode="bilinear", align_corners=False, antialias=True)
+        pixels = F.interpolate(pixels, size=(rows * CELL, columns * CELL), mode="bilinear", align_corners=False, antialias=True)
         log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
         gx, gy = _sobel(log_channels[:, 0])  # [3, S, S] each
         histogram = _soft_orientation_histogram(gx, gy).sum(0)  # [B, S, S]
-        cells = F.avg_pool2d(histogram[None], cell)  # [1, B, rows, columns]
+        cells = F.avg_pool2d(histogram[None], CELL)  # [1, B, G, G]
         blocks = []
         for width in POOLING_CELLS:
             pooled = cells if width == 1 else _box_pool(cells, width)
@@ -84,12 +77,6 @@ class OfflineTeacher:
             blocks.append(pooled / torch.sqrt(norm**2 + floor**2))
         features = torch.cat(blocks, dim=1) / math.sqrt(len(POOLING_CELLS))
         return features[0].permute(1, 2, 0)
-
-
-def cell_pixels(height: int, width: int, rows: int, columns: int) -> int:
-    """Side in pixels of one descriptor cell for an image [height, width] described on a rows x columns grid:
-    `CELL`, or fewer when the image has fewer pixels per cell (never enlarge), at least 1."""
-    return max(1, min(CELL, height // rows, width // columns))
 
 
 def _sobel(channels: Tensor) -> tuple[Tensor, Tensor]:

@@ -139,6 +139,34 @@ def test_offline_sobel_matches_the_convolution_it_replaces():
     assert torch.allclose(_sobel(ramp)[0][:, :, 1:-1], torch.ones(1, 4, 3))  # kernel / 8: the slope itself
 
 
+def test_offline_cell_histograms_match_per_pixel_histograms_pooled():
+    """The fused cell histogram equals the definition: per-pixel soft-binned votes, summed over channels,
+    averaged over each cell (values and gradients)."""
+    import math
+
+    from sg_nerfstudio.features.offline import ORIENTATIONS, _cell_orientation_histograms
+
+    generator = torch.Generator().manual_seed(1)
+    gx = torch.randn(3, 16, 24, generator=generator, requires_grad=True)
+    gy = torch.randn(3, 16, 24, generator=generator, requires_grad=True)
+    magnitude = torch.sqrt(gx**2 + gy**2)
+    position = (torch.atan2(gy, gx) % (2 * math.pi)) / (2 * math.pi) * ORIENTATIONS
+    lower = torch.floor(position.detach())
+    lower_bin = torch.nn.functional.one_hot(lower.long() % ORIENTATIONS, ORIENTATIONS).permute(0, 3, 1, 2)
+    upper_bin = torch.nn.functional.one_hot((lower.long() + 1) % ORIENTATIONS, ORIENTATIONS).permute(0, 3, 1, 2)
+    weight = (position - lower)[:, None]
+    per_pixel = (magnitude[:, None] * ((1 - weight) * lower_bin + weight * upper_bin)).sum(0)  # [B, H, W]
+    expected = torch.nn.functional.avg_pool2d(per_pixel[None], 8)[0]
+    fused = _cell_orientation_histograms(gx, gy, 8)
+    assert fused.shape == (ORIENTATIONS, 2, 3)
+    torch.testing.assert_close(fused, expected, rtol=1e-5, atol=1e-6)
+    probe = torch.randn(fused.shape, generator=generator)
+    grads = torch.autograd.grad((fused * probe).sum(), (gx, gy))
+    expected_grads = torch.autograd.grad((expected * probe).sum(), (gx, gy))
+    for grad, expected_grad in zip(grads, expected_grads):
+        torch.testing.assert_close(grad, expected_grad, rtol=1e-4, atol=1e-5)
+
+
 class CountingTeacher:
     """Wraps a teacher and counts extractions."""
 

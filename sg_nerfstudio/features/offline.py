@@ -71,8 +71,7 @@ class OfflineTeacher:
         pixels = F.interpolate(pixels, size=size, mode="bilinear", align_corners=False, antialias=shrinking)
         log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
         gx, gy = _sobel(log_channels[:, 0])  # [3, S, S] each
-        histogram = _soft_orientation_histogram(gx, gy).sum(0)  # [B, S, S]
-        cells = F.avg_pool2d(histogram[None], CELL)  # [1, B, G, G]
+        cells = _cell_orientation_histograms(gx, gy, CELL)[None]  # [1, B, rows, columns]
         blocks = []
         for width in POOLING_CELLS:
             pooled = cells if width == 1 else _box_pool(cells, width)
@@ -98,15 +97,21 @@ def _sobel(channels: Tensor) -> tuple[Tensor, Tensor]:
     return gx, gy
 
 
-def _soft_orientation_histogram(gx: Tensor, gy: Tensor) -> Tensor:
-    """Magnitude-weighted signed orientation histogram with linear interpolation between bins.
+def _cell_orientation_histograms(gx: Tensor, gy: Tensor, cell: int) -> Tensor:
+    """Per cell of `cell` x `cell` pixels, the mean over its pixels and channels of the magnitude-weighted
+    signed orientation histogram, linearly interpolated between the two nearest of the ORIENTATIONS bins.
+
+    Each pixel's two weighted votes are added straight into its cell's bins (one `index_add`), so no
+    per-pixel histogram [C, ORIENTATIONS, H, W] is ever built (that was most of the descriptor's cost).
 
     Args:
-        gx, gy: [C, S, S] gradients.
+        gx, gy: [C, H, W] gradients, H and W multiples of `cell`.
 
     Returns:
-        [C, ORIENTATIONS, S, S].
+        [ORIENTATIONS, H / cell, W / cell].
     """
+    channels, height, width = gx.shape
+    rows, columns = height // cell, width // cell
     # The tiny offsets keep the gradients finite where the image is flat (sqrt and atan2 at 0); they change
     # the descriptor by less than float32 resolution.
     magnitude = torch.sqrt(gx**2 + gy**2 + TINY**2)
@@ -115,10 +120,13 @@ def _soft_orientation_histogram(gx: Tensor, gy: Tensor) -> Tensor:
     upper_weight = position - lower
     lower_bin = lower.long() % ORIENTATIONS
     upper_bin = (lower_bin + 1) % ORIENTATIONS
-    histogram = torch.zeros(gx.shape[0], ORIENTATIONS, *gx.shape[1:], device=gx.device, dtype=gx.dtype)
-    histogram = histogram.scatter_add(1, lower_bin[:, None], (magnitude * (1 - upper_weight))[:, None])
-    histogram = histogram.scatter_add(1, upper_bin[:, None], (magnitude * upper_weight)[:, None])
-    return histogram
+    device = gx.device
+    cell_of_pixel = (torch.arange(height, device=device) // cell)[:, None] * columns + (torch.arange(width, device=device) // cell)[None, :]
+    n_cells = rows * columns
+    slots = torch.stack([lower_bin * n_cells + cell_of_pixel, upper_bin * n_cells + cell_of_pixel])  # [2, C, H, W]
+    votes = torch.stack([magnitude * (1 - upper_weight), magnitude * upper_weight])
+    histogram = torch.zeros(ORIENTATIONS * n_cells, device=device, dtype=gx.dtype).index_add(0, slots.flatten(), votes.flatten())
+    return histogram.reshape(ORIENTATIONS, rows, columns) / (cell * cell)
 
 
 def _box_pool(cells: Tensor, width: int) -> Tensor:

@@ -189,7 +189,9 @@ def _rasterize_cpu(
     opacities_all = opacities.detach().expand(n_cameras, -1).clone()
     opacities_all[entry_cameras, entry_ids] = entry_opacities.detach()
     renders, alphas = [], []
-    per_camera = zip(entry_means2d, proj.conics.split(counts), proj.cov2d.split(counts), entry_opacities.split(counts), entry_colors.split(counts))
+    per_camera = zip(
+        entry_means2d, proj.conics.split(counts), proj.cov2d.split(counts), entry_opacities.split(counts), entry_colors.split(counts)
+    )
     for cam_means2d, cam_conics, cam_cov2d, cam_opacities, cam_colors in per_camera:
         render, alpha = composite(cam_means2d, cam_conics, cam_cov2d, cam_opacities, cam_colors, width, height)
         renders.append(render)

@@ -144,10 +144,7 @@ def cull_gaussians(
     safe_tz = torch.where(tz.abs() < 1e-10, torch.full_like(tz, 1e-10), tz)
     fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]
     cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.15 * width / fx, cx / fx + 0.15 * width / fx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.15 * height / fy, cy / fy + 0.15 * height / fy
-    u = torch.clamp(tx / safe_tz, min=-lim_x_neg, max=lim_x_pos)  # the Jacobian's clamped direction
-    v = torch.clamp(ty / safe_tz, min=-lim_y_neg, max=lim_y_pos)
+    u, v = _clamped_directions(tx, ty, safe_tz, (fx, fy, cx, cy), width, height)  # as in the Jacobian
     jacobian_sq = (fx**2 * (1 + u**2) + fy**2 * (1 + v**2)) / safe_tz**2  # ||J||_F^2
     trace = covars.diagonal(dim1=-2, dim2=-1).sum(-1).clamp(min=0.0)  # [N]
     radius = 3.0 * torch.sqrt(jacobian_sq * trace + eps2d + 0.1) + 1.0
@@ -192,6 +189,16 @@ def project_gaussians_packed(
     return _project_camera_frame(means_c, covars_c, intrinsics, width, height, eps2d, near_plane, far_plane, calc_compensations)
 
 
+def _clamped_directions(tx: Tensor, ty: Tensor, tz: Tensor, intrinsics, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """(tx / tz, ty / tz) clamped to 1.3x the field of view, where the perspective Jacobian is evaluated
+    (gsplat's guard against huge covariances of Gaussians far outside the frustum)."""
+    fx, fy, cx, cy = intrinsics
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
+    return torch.clamp(tx / tz, min=-lim_x_neg, max=lim_x_pos), torch.clamp(ty / tz, min=-lim_y_neg, max=lim_y_pos)
+
+
 def _project_camera_frame(
     means_c: Tensor,
     covars_c: Tensor,
@@ -210,11 +217,8 @@ def _project_camera_frame(
     # no inf/NaN leaks into gradients of the other Gaussians.
     tz = torch.where(tz.abs() < 1e-10, torch.full_like(tz, 1e-10), tz)
     fx, fy, cx, cy = intrinsics
-    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
-    tx_clamped = tz * torch.clamp(tx / tz, min=-lim_x_neg, max=lim_x_pos)
-    ty_clamped = tz * torch.clamp(ty / tz, min=-lim_y_neg, max=lim_y_pos)
+    u, v = _clamped_directions(tx, ty, tz, intrinsics, width, height)
+    tx_clamped, ty_clamped = tz * u, tz * v
 
     zeros = torch.zeros_like(tz)
     jac = torch.stack(

@@ -144,6 +144,25 @@ def test_registration_converges_where_the_optimum_is_known_and_leaves_the_model_
     assert checkpoint_digest(reference.checkpoint_path) == before_digest
 
 
+def test_batched_rendering_gives_the_per_photo_losses(reference, meta, ground_truth, monkeypatch):
+    """Photos rendered together (one packed projection) or one per call give the same losses and coverage."""
+    from sg_nerfstudio.registration import optimize
+
+    settings = RegistrationSettings(**FAST, objective="teacher-on-render")
+    photos = prepare_photos(reference, meta, settings)
+    matrix = torch.from_numpy(reference.world_to_dataparser @ ground_truth)
+    scale = torch.tensor(decompose(matrix.numpy())[0], dtype=torch.float64)
+    indices = list(range(len(photos)))[::-1]
+    objective = Objective(reference, photos, settings, 0.01)
+    assert len(objective.same_size_groups(indices)) < len(indices)  # several photos share a render call
+    together, coverage_together = objective(matrix, scale, indices)
+    monkeypatch.setattr(optimize, "RENDER_BATCH_ELEMENTS", 1)
+    assert len(objective.same_size_groups(indices)) == len(indices)
+    alone, coverage_alone = objective(matrix, scale, indices)
+    torch.testing.assert_close(torch.stack(together), torch.stack(alone), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(coverage_together, coverage_alone, rtol=1e-5, atol=1e-6)
+
+
 def test_same_seed_same_transform(reference, meta, ground_truth):
     start = perturbed_start(meta, ground_truth, 5, 3.0, 0.05, 0.05)
     settings = RegistrationSettings(**{**FAST, "steps": 15, "images_per_step": 2})

@@ -36,6 +36,9 @@ from sg_nerfstudio.registration.sim3 import decompose, invert, update_matrix
 
 Array = np.ndarray
 ObjectiveKind = Literal["features", "teacher-on-render", "photometric"]
+RENDER_BATCH_ELEMENTS = 2_000_000
+"""Cameras x Gaussians rendered in one call: all 20 photos at once for a 20k-Gaussian CPU model, one or two
+at a time for the millions of Gaussians of a real reconstruction (bounded memory)."""
 
 
 class InitialisationError(InputError):
@@ -201,7 +204,7 @@ class Objective:
         The losses stay separate tensors so that a robust objective that ignores a photo never
         backpropagates through its render."""
         losses, coverage = [None] * len(indices), [None] * len(indices)
-        for size, positions in self.same_size_groups(indices).items():
+        for size, positions in self.same_size_groups(indices):
             start = time.perf_counter()
             photos = [self.photos[indices[position]] for position in positions]
             viewmats = torch.stack([camera_viewmat(photo.cam_from_meta, matrix[:3, :3], matrix[:3, 3], scale) for photo in photos])
@@ -218,12 +221,14 @@ class Objective:
             self.timings["loss"] += time.perf_counter() - middle
         return losses, torch.stack(coverage)
 
-    def same_size_groups(self, indices) -> dict[tuple[int, int], list[int]]:
-        """Positions in `indices` grouped by the (width, height) their photos render at."""
+    def same_size_groups(self, indices) -> list[tuple[tuple[int, int], list[int]]]:
+        """Positions in `indices` grouped by the (width, height) their photos render at, in batches of at most
+        RENDER_BATCH_ELEMENTS // N cameras (the CPU renderer holds [cameras, N] tensors while culling)."""
         groups: dict[tuple[int, int], list[int]] = {}
         for position, index in enumerate(indices):
             groups.setdefault((self.photos[index].width, self.photos[index].height), []).append(position)
-        return groups
+        per_batch = max(1, RENDER_BATCH_ELEMENTS // max(int(self.reference.means.shape[0]), 1))
+        return [(size, positions[i : i + per_batch]) for size, positions in groups.items() for i in range(0, len(positions), per_batch)]
 
     def on_target_grid(self, rendered: Tensor, target: Tensor) -> Tensor:
         """[1, H, W, C] render -> [1, rows, columns, D] comparable with the target map [rows, columns, D]."""

@@ -271,9 +271,10 @@ class _TileComposite(torch.autograd.Function):
         m, channels = colors.shape
         with_color_grad = bool(ctx.needs_input_grad[3])
         if not (grad_render.any() or grad_alpha.any()):  # e.g. a photo the robust loss ignores this step
-            zeros = [torch.zeros(m, k, dtype=torch.from_numpy(colors).dtype) for k in (2, 3)]
-            color_grad = torch.zeros(m, channels, dtype=zeros[0].dtype) if with_color_grad else None
-            return zeros[0], zeros[1], torch.zeros(m, dtype=zeros[0].dtype), color_grad, None, None, None
+            dtype = grad_render.dtype
+            color_grad = torch.zeros(m, channels, dtype=dtype) if with_color_grad else None
+            zeros = (torch.zeros(m, 2, dtype=dtype), torch.zeros(m, 3, dtype=dtype), torch.zeros(m, dtype=dtype))
+            return *zeros, color_grad, None, None, None
         grad_means2d = np.empty((workers, m, 2), dtype=colors.dtype)
         grad_conics = np.empty((workers, m, 3), dtype=colors.dtype)
         grad_opacities = np.empty((workers, m, 1), dtype=colors.dtype)

@@ -101,6 +101,23 @@ def test_distorted_photos_are_described_by_their_models(tiny_scene):
     assert any(f > 0.05 for f in occluded)
 
 
+def test_occluders_are_textured_like_real_ones():
+    """Inside an occluder the image has edges (clothing, foliage, panels), not a flat colour."""
+    import cv2
+
+    from sg_nerfstudio.synthetic.appearance import draw_occluders
+
+    flat = np.full((240, 320, 3), 0.5)
+    image, coverage = draw_occluders(flat, 0.4, np.random.default_rng(0))
+    assert 0.3 <= coverage <= 0.8
+    covered = np.any(np.abs(image - flat) > 1e-9, axis=2).astype(np.uint8)
+    interior = cv2.erode(covered, np.ones((7, 7), np.uint8)) > 0  # away from the shapes' outlines
+    grey = image.mean(axis=2).astype(np.float32)
+    gradient = np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+    textured = gradient[interior] > 0.05
+    assert interior.sum() > 0.2 * interior.size and textured.mean() > 0.3
+
+
 def digest(directory: Path) -> str:
     h = hashlib.sha256()
     for path in sorted(p for p in directory.rglob("*") if p.is_file() and p.name != "scene.json"):

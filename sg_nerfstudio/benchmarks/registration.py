@@ -53,6 +53,8 @@ class Args:
     trials: int = 20
     ablation_trials: int = 4
     """Starts per meta-image and ablation row."""
+    ablation_rows: tuple[str, ...] = tuple(ABLATIONS)
+    """Ablation rows to run (e.g. `full none` for the trimming comparison alone)."""
     skip: tuple[str, ...] = ()
     """Parts to skip: accuracy, ablations, speed."""
     output: Path = Path("benchmark_registration.json")
@@ -113,14 +115,14 @@ def accuracy(reference, scene, settings, trials, console) -> dict:
     return {"rows": rows, "success_rate": sum(success) / trials}
 
 
-def ablations(reference, scene, settings, trials, console) -> dict:
+def ablations(reference, scene, settings, trials, rows_to_run, console) -> dict:
     metas = load_metas(scene)
     table = Table(title=f"Ablations on {scene.name} ({trials} starts per meta-image, 30% heavily occluded photos)")
     for column in ("method", "ΔR (°)", "ΔT", "MTA (%)", "O (%)", "runs"):
         table.add_column(column, justify="right")
     results = {}
-    for name, change in ABLATIONS.items():
-        variant = replace(settings, **change)
+    for name in rows_to_run:
+        variant = replace(settings, **ABLATIONS[name])
         rows = []
         for meta, truth in metas:
             photos = prepare_photos(reference, meta, variant)
@@ -167,6 +169,9 @@ def prune(reference: ReferenceModel, count: int) -> ReferenceModel:
 
 
 def main(args: Args) -> None:
+    unknown = [name for name in args.ablation_rows if name not in ABLATIONS]
+    if unknown:
+        raise SystemExit(f"Unknown ablation row(s) {', '.join(unknown)}; expected some of {', '.join(ABLATIONS)}.")
     torch.set_num_threads(args.threads)
     console = Console(width=140)
     settings = load_settings_preset(args.preset)
@@ -177,7 +182,7 @@ def main(args: Args) -> None:
         report["accuracy"] = accuracy(reference, args.scene, settings, args.trials, console)
     if "ablations" not in args.skip:
         heavy = scene_variant(args.scene, "occluded", occluder_rate=0.3, occluder_coverage=(0.4, 0.6), appearance_strength=1.0)
-        report["ablations"] = ablations(reference, heavy, settings, args.ablation_trials, console)
+        report["ablations"] = ablations(reference, heavy, settings, args.ablation_trials, args.ablation_rows, console)
     if "speed" not in args.skip:
         twenty = scene_variant(args.scene, "front20", meta_images=("front:20",))
         report["speed"] = speed(reference, twenty, settings, console)

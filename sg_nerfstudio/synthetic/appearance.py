@@ -2,7 +2,8 @@
 
 Reference renders get flat lighting on the smoothed albedo (the pseudo-synthetic look). Each photo of a
 meta-image gets its own sun, sky, exposure, white balance, gamma, sensor noise, blur and, for some
-photos, transient occluders (people, vehicles, trees) drawn over part of the frame.
+photos, textured transient occluders (people, vehicles, trees) drawn over part of the frame before the
+camera effects.
 """
 
 from __future__ import annotations
@@ -71,13 +72,23 @@ def apply_camera_effects(image: Array, look: PhotoLook, rng: np.random.Generator
 
 
 def draw_occluders(image: Array, coverage: float, rng: np.random.Generator) -> tuple[Array, float]:
-    """Paint people, vehicles and trees over the lower part of the photo until about `coverage` of it is hidden.
+    """Paint textured people, vehicles and trees over the lower part of the photo until about `coverage`
+    of it is hidden.
+
+    Each occluder's colours are modulated by its own texture (clothing stripes, foliage, body panels and
+    reflections; `occluder_texture`): real occluders have edges and texture inside, which a gradient- or
+    DINO-based descriptor responds to as strongly as to the landmark, whereas flat shapes would leave
+    gradient-free areas that such descriptors largely ignore.
+
+    Args:
+        image: [H, W, 3] linear radiance (>= 0), before the photo's camera effects (so occluders get the same exposure,
+            white balance, blur and noise as the landmark).
 
     Returns:
         the image and the fraction of pixels actually covered.
     """
     height, width = image.shape[:2]
-    canvas = (image * 255).astype(np.uint8).copy()
+    canvas = image.astype(np.float64).copy()
     mask = np.zeros((height, width), np.uint8)
     scale = min(width, height)
     for _ in range(40):
@@ -88,22 +99,27 @@ def draw_occluders(image: Array, coverage: float, rng: np.random.Generator) -> t
         ground = int(rng.uniform(0.75, 1.05) * height)
         color = tuple(int(c) for c in rng.integers(20, 230, 3))
         layer = np.zeros_like(mask)
+        shape = np.zeros((height, width, 3), np.uint8)
         if kind == "person":
             h = int(rng.uniform(0.25, 0.6) * scale)
             w = max(h // 4, 2)
-            for target in (canvas, layer):
-                value = color if target is canvas else 255
+            for target in (shape, layer):
+                value = color if target is shape else 255
                 cv2.rectangle(target, (x - w // 2, ground - int(0.85 * h)), (x + w // 2, ground), value, -1)
                 cv2.circle(target, (x, ground - int(0.92 * h)), max(w // 2, 1), value if target is layer else (200, 160, 130), -1)
+            feature_size = max(w / 4, 1.5)
         elif kind == "vehicle":
             h = int(rng.uniform(0.15, 0.3) * scale)
             w = int(h * rng.uniform(1.8, 2.6))
-            for target in (canvas, layer):
-                value = color if target is canvas else 255
+            for target in (shape, layer):
+                value = color if target is shape else 255
                 cv2.rectangle(target, (x - w // 2, ground - h), (x + w // 2, ground - h // 5), value, -1)
                 cv2.rectangle(target, (x - w // 3, ground - int(1.4 * h)), (x + w // 3, ground - h), value, -1)
+                if target is shape:  # side windows
+                    cv2.rectangle(target, (x - w // 3 + 2, ground - int(1.35 * h)), (x + w // 3 - 2, ground - int(1.05 * h)), (40, 50, 60), -1)
                 for wheel in (x - w // 3, x + w // 3):
                     cv2.circle(target, (wheel, ground - h // 5), max(h // 5, 1), 255 if target is layer else (25, 25, 25), -1)
+            feature_size = max(h / 6, 1.5)
         else:
             h = int(rng.uniform(0.4, 0.9) * scale)
             trunk = max(h // 12, 2)
@@ -112,9 +128,41 @@ def draw_occluders(image: Array, coverage: float, rng: np.random.Generator) -> t
                 (x + int(rng.normal(0, h * 0.15)), ground - h // 2 - int(abs(rng.normal(h * 0.2, h * 0.1))), max(int(h * rng.uniform(0.12, 0.22)), 1))
                 for _ in range(6)
             ]
-            for target in (canvas, layer):
-                cv2.rectangle(target, (x - trunk, ground - h // 2), (x + trunk, ground), (70, 50, 35) if target is canvas else 255, -1)
+            for target in (shape, layer):
+                cv2.rectangle(target, (x - trunk, ground - h // 2), (x + trunk, ground), (70, 50, 35) if target is shape else 255, -1)
                 for cx, cy, radius in blobs:
-                    cv2.circle(target, (cx, cy), radius, leaf if target is canvas else 255, -1)
+                    cv2.circle(target, (cx, cy), radius, leaf if target is shape else 255, -1)
+            feature_size = max(h / 30, 1.0)
+        inside = layer > 0
+        texture = occluder_texture((height, width), kind, feature_size, rng)
+        canvas[inside] = shape[inside] / 255.0 * texture[inside, None]
         mask = np.maximum(mask, layer)
-    return canvas.astype(np.float64) / 255.0, float(mask.mean() / 255.0)
+    return canvas, float(mask.mean() / 255.0)
+
+
+def occluder_texture(shape: tuple[int, int], kind: str, feature_size: float, rng: np.random.Generator) -> Array:
+    """[H, W] brightness factor in about [0.35, 1.5] for one occluder.
+
+    People: stripes of a random direction and period (clothing prints) over fine noise; trees: foliage
+    speckle (band-limited noise at the leaf size); vehicles: broad body-panel shading plus a few
+    reflections. `feature_size` is the texture's characteristic length in pixels.
+    """
+    height, width = shape
+
+    def noise(length: float) -> Array:
+        """Band-limited noise with unit standard deviation and features of about `length` pixels."""
+        coarse = rng.normal(size=(max(int(height / length), 2), max(int(width / length), 2))).astype(np.float32)
+        field = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
+        return (field - field.mean()) / max(float(field.std()), 1e-6)
+
+    if kind == "person":
+        angle = rng.uniform(0, np.pi)
+        period = feature_size * rng.uniform(1.5, 4.0)
+        ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+        stripes = np.sign(np.sin(2 * np.pi * (xs * np.cos(angle) + ys * np.sin(angle)) / period))
+        factor = 1.0 + 0.3 * stripes + 0.1 * noise(feature_size)
+    elif kind == "tree":
+        factor = 1.0 + 0.35 * noise(feature_size) + 0.15 * noise(4 * feature_size)
+    else:
+        factor = 1.0 + 0.2 * noise(8 * feature_size) + 0.25 * np.clip(noise(2 * feature_size) - 1.5, 0, None)
+    return np.clip(factor, 0.35, 1.5).astype(np.float32)

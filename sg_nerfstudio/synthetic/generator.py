@@ -347,10 +347,10 @@ def _generate_meta_image(spec, config, scene, geometry, ring_radius, unit, rng, 
     for shot in shots:
         look = random_look(config.appearance_strength, rng)
         image, depth = render_shot(geometry, sun_lighting(scene.albedo_sharp, scene.normals, look), shot, look.sky)
-        image = apply_camera_effects(image, look, rng)
         coverage = 0.0
         if rng.random() < config.occluder_rate:
             image, coverage = draw_occluders(image, rng.uniform(*config.occluder_coverage), rng)
+        image = apply_camera_effects(image, look, rng)
         metadata = {
             "name": shot.name,
             "occluded_fraction": round(coverage, 4),

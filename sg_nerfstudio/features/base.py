@@ -80,3 +80,17 @@ def input_shape(height: int, width: int, input_size: int, step: int) -> tuple[in
     ratio, rounded to a multiple of `step` (at least one step)."""
     short = max(step, round(input_size * min(height, width) / max(height, width) / step) * step)
     return (input_size, short) if height >= width else (short, input_size)
+
+
+def resize_to_grid(maps: Tensor, size: tuple[int, int]) -> Tensor:
+    """Rendered maps [B, C, H, W] -> [B, C, rows, columns] on a teacher grid.
+
+    Bilinear (align_corners=False); when shrinking, with antialiasing, so each grid cell averages the
+    render over about its own footprint, as the teacher's cell or patch pools the image, instead of
+    sampling the 2 x 2 pixels nearest its centre (which would also leave every other rendered pixel
+    without a gradient).
+    """
+    if tuple(maps.shape[-2:]) == tuple(size):
+        return maps
+    shrinking = size[0] < maps.shape[-2] or size[1] < maps.shape[-1]
+    return torch.nn.functional.interpolate(maps, size=size, mode="bilinear", align_corners=False, antialias=shrinking)

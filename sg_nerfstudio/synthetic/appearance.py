@@ -81,8 +81,8 @@ def draw_occluders(image: Array, coverage: float, rng: np.random.Generator) -> t
     gradient-free areas that such descriptors largely ignore.
 
     Args:
-        image: [H, W, 3] linear radiance (>= 0), before the photo's camera effects (so occluders get the same exposure,
-            white balance, blur and noise as the landmark).
+        image: [H, W, 3] linear radiance (>= 0), before the photo's camera effects (so occluders get the
+            same exposure, white balance, blur and noise as the landmark).
 
     Returns:
         the image and the fraction of pixels actually covered.

@@ -4,7 +4,7 @@ Every Gaussian carries a learnable feature vector (default 128-d) next to its co
 features are rendered in one rasterization call ([rgb | features], SH colours evaluated per view) through
 `sg_nerfstudio.render.rasterize` (gsplat on CUDA, the pure-PyTorch rasterizer on CPU). The rendered
 feature map goes through the *speedup decoder* `Conv2d(feature_dim, D_teacher, 1)` and is compared with
-the teacher map after a bilinear resize to the teacher grid (antialiased when shrinking, `resize_to_grid`):
+the teacher map after a bilinear resize to the teacher grid (antialiased when shrinking, `resize_bilinear`):
 
     L = L_rgb (splatfacto: (1 - l) L1 + l (1 - SSIM)) + feature_loss_weight * |F_teacher - resize(decoder(F))|_1
 
@@ -39,7 +39,7 @@ from nerfstudio.utils.colors import get_color
 from nerfstudio.utils.rich_utils import CONSOLE
 from pytorch_msssim import SSIM
 
-from sg_nerfstudio.features.base import resize_to_grid
+from sg_nerfstudio.features.base import resize_bilinear
 from sg_nerfstudio.frames import viewmats_from_camera_to_worlds
 from sg_nerfstudio.render import rasterize, resolve_backend
 from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
@@ -266,7 +266,7 @@ class FeatureSplatfactoModel(SplatfactoModel):
         return torch.clamp_min(evaluate_sh(degree, params["means"] - camera_centre, shs) + 0.5, 0.0)
 
     def decode_features(self, feature_render: Tensor, size: Optional[Tuple[int, int]] = None) -> Tensor:
-        """Speedup decoder, optionally after the resize to `size` (`resize_to_grid`; the two commute: both linear).
+        """Speedup decoder, optionally after the resize to `size` (`resize_bilinear`; the two commute: both linear).
 
         Args:
             feature_render: [H, W, feature_dim] rendered Gaussian features.
@@ -277,7 +277,7 @@ class FeatureSplatfactoModel(SplatfactoModel):
         """
         maps = feature_render.permute(2, 0, 1)[None]
         if size is not None:
-            maps = resize_to_grid(maps, size)
+            maps = resize_bilinear(maps, size)
         return self.feature_decoder(maps)[0].permute(1, 2, 0)
 
     def feature_pca(self, features: Tensor) -> Tensor:
@@ -325,7 +325,7 @@ class FeatureSplatfactoModel(SplatfactoModel):
         images = {"img": torch.cat([gt_rgb, predicted_rgb], dim=1)}
         if "teacher_features" in batch and "features" in outputs:
             teacher = batch["teacher_features"].to(self.device)
-            on_grid = resize_to_grid(outputs["features"].permute(2, 0, 1)[None], tuple(teacher.shape[:2]))
+            on_grid = resize_bilinear(outputs["features"].permute(2, 0, 1)[None], tuple(teacher.shape[:2]))
             metrics["feature_cosine"] = float(F.cosine_similarity(on_grid[0].permute(1, 2, 0), teacher, dim=-1).mean())
             images["feature_pca"] = outputs["feature_pca"]
         return metrics, images

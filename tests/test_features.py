@@ -185,20 +185,20 @@ class CountingTeacher:
 def test_rendered_maps_reach_the_teacher_grid_by_averaging_their_footprint():
     """Shrinking to the grid averages each cell's footprint (every rendered pixel gets a gradient);
     same-size and enlarging resizes are plain bilinear."""
-    from sg_nerfstudio.features.base import resize_to_grid
+    from sg_nerfstudio.features.base import resize_bilinear
 
     generator = torch.Generator().manual_seed(0)
     maps = torch.rand(1, 3, 120, 160, generator=generator, requires_grad=True)
-    on_grid = resize_to_grid(maps, (24, 32))
+    on_grid = resize_bilinear(maps, (24, 32))
     on_grid.sum().backward()
     assert on_grid.shape == (1, 3, 24, 32) and bool((maps.grad > 0).all())
     blocks = maps.detach().reshape(1, 3, 24, 5, 32, 5).mean(dim=(3, 5))  # 5 x 5 footprint per cell
     assert float((on_grid.detach() - blocks).abs().mean()) < 0.05 < float((maps.detach()[..., 2::5, 2::5] - blocks).abs().mean())
 
     small = torch.rand(1, 3, 6, 8, generator=generator)
-    assert resize_to_grid(small, (6, 8)) is small
+    assert resize_bilinear(small, (6, 8)) is small
     enlarged = torch.nn.functional.interpolate(small, size=(12, 16), mode="bilinear", align_corners=False)
-    assert torch.equal(resize_to_grid(small, (12, 16)), enlarged)
+    assert torch.equal(resize_bilinear(small, (12, 16)), enlarged)
 
 
 def test_cache_hits_misses_and_corruption(tmp_path, capsys):

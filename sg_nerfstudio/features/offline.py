@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sg_nerfstudio.features.base import TeacherConfig, checked_grid, input_shape, resolve_device
+from sg_nerfstudio.features.base import TeacherConfig, checked_grid, input_shape, resize_bilinear, resolve_device
 
 CELL = 8
 ORIENTATIONS = 12
@@ -65,10 +65,7 @@ class OfflineTeacher:
         pixels = image.permute(2, 0, 1)[None]
         rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
         size = (rows * CELL, columns * CELL)
-        # antialiasing only matters when shrinking; enlarging (every render in registration) gives the same
-        # values without it (to 1e-7) at a third of the cost
-        shrinking = size[0] < image.shape[0] or size[1] < image.shape[1]
-        pixels = F.interpolate(pixels, size=size, mode="bilinear", align_corners=False, antialias=shrinking)
+        pixels = resize_bilinear(pixels, size)
         log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
         gx, gy = _sobel(log_channels[:, 0])  # [3, S, S] each
         cells = _cell_orientation_histograms(gx, gy, CELL)[None]  # [1, B, rows, columns]

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import TeacherConfig
-from sg_nerfstudio.features.base import resize_to_grid
+from sg_nerfstudio.features.base import resize_bilinear
 from sg_nerfstudio.render import rasterize
 from sg_nerfstudio.render.projection import covariances_from_quats_scales
 
@@ -159,5 +159,5 @@ def load_reference(config_path: Path, device: str = "cpu") -> ReferenceModel:
 
 
 def resize_to(maps: Tensor, size: tuple[int, int]) -> Tensor:
-    """[C, H, W, D] -> [C, h, w, D] on the teacher grid, exactly as in training (`resize_to_grid`)."""
-    return resize_to_grid(maps.permute(0, 3, 1, 2), size).permute(0, 2, 3, 1)
+    """[C, H, W, D] -> [C, h, w, D] on the teacher grid, exactly as in training (`resize_bilinear`)."""
+    return resize_bilinear(maps.permute(0, 3, 1, 2), size).permute(0, 2, 3, 1)

@@ -1,9 +1,9 @@
 """SIFT + pycolmap initialisers: ground truth recovered on clean renders, failures reported, sg-init-baseline.
 
 The scene here is the synthetic generator's layout and COLMAP writers (sg_nerfstudio.synthetic) with
-textured planar surfaces (facade + ground) ray-cast exactly, instead of the generator's Gaussian
-landmark: the tiny preset's 48x36 splat renders hold no SIFT structure (no reference pair reaches
-COLMAP's 15 verified matches even when rendered at 640x480), so they cannot test a SIFT pipeline.
+three planes of multi-scale noise texture at 320x240, instead of a generated landmark: the tiny preset's
+48x36 renders are too small for SIFT, and the default preset (whose meta-images both initialisers do
+register, see the README) takes about 40 s to generate and a minute to initialise.
 Photos have their own sizes and focal lengths, two use SIMPLE_RADIAL distortion, and the meta-image
 lives in a random Sim(3) frame, as in the generator.
 """

@@ -1,12 +1,17 @@
-"""A procedural landmark (church-like building on a paved square) as 3D Gaussians with exact geometry.
+"""A procedural landmark (church-like building on a paved square): analytic surfaces with patterns.
 
 World frame: z up, ground plane z = 0, the main body centred on the origin, its *front* facade facing
 -y. Units are metres before the generator rescales the scene (see `generator.py`).
 
-Every Gaussian is a flat disc lying on a surface: its third local axis is the surface normal, so the
-splats render like a textured surface. Each Gaussian keeps the surface normal and two albedos:
-`albedo_sharp` (crisp patterns and fine stone texture: what a photo sees) and `albedo_smooth` (blurred
-pattern edges, no fine texture: the "pseudo-synthetic" look of Google-Earth-like reference renders).
+Each `Surface` (planar patches, the ground disc, a dome) can be sampled (points with their (u, v)),
+intersected by rays (`raycast.py` renders the photos and reference images this way) and coloured by its
+pattern, a function of (u, v) in metres and an edge softness: windows, doors, cornices, stone blocks,
+weathering and one-off decals (plaques, signs, plants) that make places distinguishable for SIFT. Soft
+edges without the finest texture give the "pseudo-synthetic" look of Google-Earth-like reference renders.
+
+`build_landmark` also gives the landmark as surface-aligned 3D Gaussians (flat discs whose third local
+axis is the surface normal): their centres are the candidate points of the synthetic COLMAP models, and
+the splats are the realistic test load of the rasterizer benchmark.
 """
 
 from __future__ import annotations
@@ -92,16 +97,20 @@ class SurfaceSamples:
 
 
 Pattern = Callable[[Array, float], Array]  # (uv [n, 2], edge softness in metres) -> rgb [n, 3]
+Intersect = Callable[[Array, Array], tuple[Array, Array, Array]]
+"""(ray origin [3], directions [n, 3]) -> ray parameter t [n] (inf where missed), uv [n, 2], outward normals [n, 3]."""
 
 
 @dataclass
 class Surface:
-    """A sampled piece of the landmark: `sample(n, rng)` draws points uniformly over `area`."""
+    """A piece of the landmark: `sample(n, rng)` draws points uniformly over `area`, `intersect` finds
+    where rays hit it (same uv as the samples), `pattern` colours it."""
 
     name: str
     area: float
     sample: Callable[[int, np.random.Generator], SurfaceSamples]
     pattern: Pattern
+    intersect: Intersect
     density: float = 1.0
     is_ground: bool = False
 
@@ -115,6 +124,66 @@ def _hash_noise(ij: Array, seed: int) -> Array:
     """Deterministic per-cell noise in [0, 1) for integer cell coordinates [n, 2]."""
     h = (ij[:, 0].astype(np.int64) * 73856093) ^ (ij[:, 1].astype(np.int64) * 19349663) ^ (seed * 83492791)
     return ((h % 1000003) / 1000003.0).astype(np.float64)
+
+
+def _value_noise(uv: Array, cell: float, seed: int) -> Array:
+    """Smooth noise in [0, 1) with features of about `cell` metres: hashed lattice values, smoothstep-interpolated."""
+    scaled = uv / cell
+    corner = np.floor(scaled)
+    frac = scaled - corner
+    weight = frac * frac * (3 - 2 * frac)
+    value = np.zeros(len(uv))
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        w = (weight[:, 0] if dx else 1 - weight[:, 0]) * (weight[:, 1] if dy else 1 - weight[:, 1])
+        value += w * _hash_noise(corner + np.array([dx, dy]), seed)
+    return value
+
+
+WEATHERING_OCTAVES = ((4.0, 0.16), (2.0, 0.12), (1.0, 0.1), (0.5, 0.08))
+"""(feature size in metres, amplitude) of the weathering of every surface: stains, repairs, moss and
+uneven tone that make real stonework unique from place to place (no two windows look the same)."""
+
+
+def weathering(uv: Array, softness: float, seed: int) -> Array:
+    """[n] brightness factor around 1 from `WEATHERING_OCTAVES`; octaves finer than `softness` are left out
+    (a soft, pseudo-synthetic render keeps the large stains only)."""
+    factor = np.ones(len(uv))
+    for octave, (cell, amplitude) in enumerate(WEATHERING_OCTAVES):
+        if cell >= softness:
+            factor += amplitude * (2 * _value_noise(uv, cell, seed * 31 + octave) - 1)
+    return factor
+
+
+DECAL_CELL = 1.6
+"""Metres: the decals of a surface sit on a grid of this pitch, at most one per cell."""
+
+
+def decals(uv: Array, color: Array, softness: float, seed: int, rate: float = 0.35) -> Array:
+    """Scatter non-repeating details over a pattern: plaques, signs, lamps, plants, patches of repair.
+
+    Repeated windows and pilasters give SIFT nothing to tell apart; real facades and squares are full of
+    one-off details. In a fraction `rate` of the cells of a `DECAL_CELL` grid sits one disc or square of
+    its own size (0.3-1.4 m across), position and colour, dark or light, so
+    that it contrasts with whatever lies under it.
+
+    Args:
+        uv: [n, 2] pattern coordinates in metres; color: [n, 3] the pattern's colour there.
+
+    Returns:
+        [n, 3] colours with the decals painted over.
+    """
+    cell = np.floor(uv / DECAL_CELL)
+    draws = [_hash_noise(cell, seed * 7 + k) for k in range(7)]
+    present = draws[0] < rate
+    radius = 0.15 + draws[1] * (0.45 * DECAL_CELL - 0.15)
+    centre = cell * DECAL_CELL + radius[:, None] + np.stack([draws[2], draws[3]], axis=1) * (DECAL_CELL - 2 * radius[:, None])
+    offset = uv - centre
+    distance = np.where(draws[4] < 0.5, np.hypot(offset[:, 0], offset[:, 1]), np.max(np.abs(offset), axis=1)) - radius
+    weight = present * _smoothstep_inside(distance, max(softness, 0.02))
+    tone = np.where(draws[5] < 0.5, 0.15 + 0.25 * draws[6], 0.85 + 0.15 * draws[6])
+    hue = np.stack([_hash_noise(cell, seed * 7 + 7 + c) for c in range(3)], axis=1)
+    decal_color = tone[:, None] * (0.6 + 0.4 * hue)
+    return color * (1 - weight[:, None]) + decal_color * weight[:, None]
 
 
 def _mix(base: Array, color: Array, weight: Array) -> Array:
@@ -178,6 +247,7 @@ def facade_pattern(width: float, height: float, style: FacadeStyle, seed: int) -
             weight = _smoothstep_inside(r - radius, softness)
             color = color * (1 - weight[:, None]) + rose * weight[:, None]
             color = _mix(color, style.trim, _smoothstep_inside(np.abs(r - radius) - 0.25, softness))
+        color = decals(uv, color * weathering(uv, softness, seed)[:, None], softness, seed)
         return np.clip(color, 0.0, 1.0)
 
     return pattern
@@ -200,7 +270,9 @@ def ground_pattern(seed: int, body_half_extent: Array) -> Pattern:
         grass = np.array([0.3, 0.45, 0.2])[None] * grass_tone[:, None]
         outer = 1.6 * float(np.max(body_half_extent)) + 6.0
         weight = 1.0 - _smoothstep_inside(radius - outer, max(softness, 0.5))
-        return np.clip(paving * (1 - weight[:, None]) + grass * weight[:, None], 0.0, 1.0)
+        color = paving * (1 - weight[:, None]) + grass * weight[:, None]
+        color = decals(uv, color * weathering(uv, softness, seed + 3)[:, None], softness, seed + 3, rate=0.15)
+        return np.clip(color, 0.0, 1.0)
 
     return pattern
 
@@ -213,7 +285,7 @@ def plain_pattern(color: Array, stripe_period: float, stripe_color: Array, axis:
         out = _mix(np.repeat(np.asarray(color)[None], len(uv), 0), stripe_color, _smoothstep_inside(phase - 0.2 * stripe_period, softness))
         if softness < 0.2:
             out = out * (0.9 + 0.2 * _hash_noise(np.floor(uv / 0.8), seed))[:, None]
-        return np.clip(out, 0.0, 1.0)
+        return np.clip(out * weathering(uv, softness, seed + 5)[:, None], 0.0, 1.0)
 
     return pattern
 
@@ -249,7 +321,26 @@ def planar_patch(
         points = origin[None] + uv[:, :1] * u_axis[None] + uv[:, 1:] * v_axis[None]
         return SurfaceSamples(points, np.repeat(normal[None], n, 0), np.repeat(u_axis[None], n, 0), uv)
 
-    return Surface(name, size[0] * size[1] * fraction, sample, pattern, density)
+    def intersect(centre: Array, rays: Array) -> tuple[Array, Array, Array]:
+        t = _ray_plane(centre, rays, origin, normal)
+        relative = centre[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * rays - origin[None]
+        uv = np.stack([relative @ u_axis, relative @ v_axis], axis=1)
+        hit = np.isfinite(t) & np.all((uv >= 0) & (uv <= np.asarray(size)), axis=1)
+        if keep is not None:
+            hit[hit] = keep(uv[hit])
+        return np.where(hit, t, np.inf), uv, np.repeat(normal[None], len(rays), 0)
+
+    if abs(u_axis @ v_axis) > 1e-9 or abs(np.linalg.norm(u_axis) - 1) > 1e-9 or abs(np.linalg.norm(v_axis) - 1) > 1e-9:
+        raise ValueError(f"Surface {name}: the pattern axes must be orthonormal.")
+    return Surface(name, size[0] * size[1] * fraction, sample, pattern, intersect, density)
+
+
+def _ray_plane(centre: Array, rays: Array, origin: Array, normal: Array) -> Array:
+    """Ray parameter t [n] where rays [n, 3] from `centre` meet the plane (inf if parallel or behind)."""
+    denominator = rays @ normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((origin - centre) @ normal) / denominator
+    return np.where(np.isfinite(t) & (t > 1e-9), t, np.inf)
 
 
 def ground_disc(radius: float, pattern: Pattern, density: float) -> Surface:
@@ -261,7 +352,14 @@ def ground_disc(radius: float, pattern: Pattern, density: float) -> Surface:
         tangents = np.repeat(np.array([[1.0, 0.0, 0.0]]), n, 0)
         return SurfaceSamples(points, normals, tangents, points[:, :2].copy())
 
-    return Surface("ground", np.pi * radius**2, sample, pattern, density, is_ground=True)
+    def intersect(centre: Array, rays: Array) -> tuple[Array, Array, Array]:
+        up = np.array([0.0, 0.0, 1.0])
+        t = _ray_plane(centre, rays, np.zeros(3), up)
+        xy = centre[None, :2] + np.where(np.isfinite(t), t, 0.0)[:, None] * rays[:, :2]
+        hit = np.isfinite(t) & (np.hypot(xy[:, 0], xy[:, 1]) <= radius)
+        return np.where(hit, t, np.inf), xy, np.repeat(up[None], len(rays), 0)
+
+    return Surface("ground", np.pi * radius**2, sample, pattern, intersect, density, is_ground=True)
 
 
 def dome(centre: Array, radius: float, pattern: Pattern) -> Surface:
@@ -276,7 +374,21 @@ def dome(centre: Array, radius: float, pattern: Pattern) -> Surface:
         uv = np.stack([phi * radius, z * radius], axis=1)
         return SurfaceSamples(centre[None] + radius * normals, normals, tangents, uv)
 
-    return Surface("dome", 2 * np.pi * radius**2, sample, pattern)
+    def intersect(origin: Array, rays: Array) -> tuple[Array, Array, Array]:
+        offset = origin - centre
+        a, b, c = np.sum(rays * rays, axis=1), 2 * rays @ offset, offset @ offset - radius**2
+        discriminant = b * b - 4 * a * c
+        root = np.sqrt(np.maximum(discriminant, 0.0))
+        t = np.full(len(rays), np.inf)
+        for candidate in ((-b + root) / (2 * a), (-b - root) / (2 * a)):  # the nearer valid root wins
+            z = offset[2] + candidate * rays[:, 2]
+            valid = (discriminant >= 0) & (candidate > 1e-9) & (z >= 0) & (candidate < t)
+            t[valid] = candidate[valid]
+        normals = (offset[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * rays) / radius
+        phi = np.mod(np.arctan2(normals[:, 1], normals[:, 0]), 2 * np.pi)
+        return t, np.stack([phi * radius, normals[:, 2] * radius], axis=1), normals
+
+    return Surface("dome", 2 * np.pi * radius**2, sample, pattern, intersect)
 
 
 def box_walls(

@@ -1,21 +1,16 @@
-"""Camera rigs of the synthetic captures and rendering of the landmark from them.
+"""Camera rigs of the synthetic captures (rendered by `raycast.py`).
 
 Poses are COLMAP-style `cam_from_world` rigid transforms (OpenCV camera: x right, y down, z forward)
-held as pycolmap objects; intrinsics are pycolmap cameras, possibly with radial distortion, which is
-applied to the pinhole render by resampling so that the COLMAP model describes the image exactly.
+held as pycolmap objects; intrinsics are pycolmap cameras, possibly with radial distortion, which the
+ray caster follows exactly (each pixel's ray comes from `camera.cam_from_img`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import pycolmap
-import torch
-
-from sg_nerfstudio.render import rasterize
-from sg_nerfstudio.synthetic.building import GaussianScene
 
 Array = np.ndarray
 
@@ -97,52 +92,3 @@ def meta_image_shots(
         camera = pinhole_camera(i + 1, width, height, rng.uniform(45, 72), k1=k1)
         shots.append(Shot(f"{name_prefix}_{i:03d}.png", camera, look_at(eye, target, roll_deg=rng.normal(0, 2.0))))
     return shots
-
-
-def scene_tensors(scene: GaussianScene) -> dict[str, torch.Tensor]:
-    """The scene's geometry as float32 tensors for `rasterize`."""
-    return {
-        "means": torch.from_numpy(scene.means).float(),
-        "quats": torch.from_numpy(scene.quats).float(),
-        "scales": torch.from_numpy(scene.scales).float(),
-        "opacities": torch.from_numpy(scene.opacities).float(),
-    }
-
-
-def render_shot(geometry: dict[str, torch.Tensor], colors: Array, shot: Shot, background: Array) -> tuple[Array, Array]:
-    """Render one shot.
-
-    Args:
-        geometry: `scene_tensors(scene)`.
-        colors: [N, 3] per-Gaussian colours for this shot.
-        background: [3] colour behind the landmark (sky).
-
-    Returns:
-        image [H, W, 3] float in [0, 1] and expected depth [H, W] (inf where nothing was hit), both in
-        the shot's (possibly distorted) camera.
-    """
-    camera = shot.camera
-    pad = 0.15 if camera.model.name != "PINHOLE" else 0.0  # margin so distortion never samples outside
-    width, height = int(camera.width * (1 + 2 * pad)), int(camera.height * (1 + 2 * pad))
-    fx, fy = (camera.focal_length_x, camera.focal_length_y)
-    cx, cy = camera.principal_point_x + pad * camera.width, camera.principal_point_y + pad * camera.height
-    K = torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=torch.float32)[None]
-    viewmat = torch.eye(4)
-    viewmat[:3] = torch.from_numpy(shot.cam_from_world.matrix()).float()
-    with torch.no_grad():
-        out, alpha, _ = rasterize(
-            **geometry, colors=torch.from_numpy(colors).float(), viewmats=viewmat[None], Ks=K,
-            width=width, height=height, render_mode="RGB+ED", backend="torch",
-        )
-    rgb = out[0, ..., :3].numpy() + (1 - alpha[0].numpy()) * np.asarray(background)[None, None]
-    depth = np.where(alpha[0, ..., 0].numpy() > 0.5, out[0, ..., 3].numpy(), np.inf)
-    if pad == 0.0:
-        return np.clip(rgb, 0, 1), depth
-    # distorted pixel (u, v) looks along cam_from_img(u, v); find it in the pinhole render
-    us, vs = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
-    rays = camera.cam_from_img(np.stack([us.ravel(), vs.ravel()], axis=1))
-    map_x = (rays[:, 0] * fx + cx - 0.5).reshape(us.shape).astype(np.float32)
-    map_y = (rays[:, 1] * fy + cy - 0.5).reshape(us.shape).astype(np.float32)
-    rgb = cv2.remap(rgb.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    depth = cv2.remap(depth.astype(np.float32), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-    return np.clip(rgb, 0, 1), depth

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -30,11 +31,17 @@ from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.synthetic.appearance import (
     apply_camera_effects, draw_occluders, flat_lighting, random_look, sun_lighting,
 )
-from sg_nerfstudio.synthetic.building import BuildingConfig, build_landmark
-from sg_nerfstudio.synthetic.capture import SIDE_AZIMUTH_DEG, Shot, meta_image_shots, reference_shots, render_shot, scene_tensors
+from sg_nerfstudio.synthetic.building import BuildingConfig, Surface, build_landmark, landmark_surfaces
+from sg_nerfstudio.synthetic.capture import SIDE_AZIMUTH_DEG, Shot, meta_image_shots, reference_shots
+from sg_nerfstudio.synthetic.raycast import raycast_shot
 
 Array = np.ndarray
 REFERENCE_BACKGROUND = np.array([0.80, 0.85, 0.90])
+PHOTO_SOFTNESS = 0.04
+"""Edge softness of the patterns in photos (metres): crisp, with the fine stone and paving texture."""
+REFERENCE_SOFTNESS = 0.2
+"""Edge softness of the patterns in reference renders (metres): the blurred, texture-poor look of
+pseudo-synthetic (Google-Earth-like) renders."""
 
 
 @dataclass
@@ -295,7 +302,7 @@ def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -
     )
     unit = scene_unit_factor(ref_shots_m)
     scene = scene_m.scaled(unit)
-    geometry = scene_tensors(scene)
+    surfaces = landmark_surfaces(b)
     ref_shots = scale_shots(ref_shots_m, unit)
 
     specs = meta_image_specs(config)
@@ -306,10 +313,10 @@ def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -
         if progress is not None:
             progress.advance(task)
 
-    reference_colors = flat_lighting(scene.albedo_smooth, scene.normals)
     ref_renders = []
     for shot in ref_shots:
-        image, depth = render_shot(geometry, reference_colors, shot, REFERENCE_BACKGROUND)
+        image, depth = raycast_shot(surfaces, flat_lighting, REFERENCE_SOFTNESS, shot, REFERENCE_BACKGROUND, 1.0 / unit)
+        image = np.clip(image, 0.0, 1.0)
         ref_renders.append(RenderedShot(shot, image, depth, {}))
         advance()
     write_images(ref_renders, root / "reference" / "images")
@@ -329,14 +336,14 @@ def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -
     }
     for spec in specs:
         manifest["meta_images"].append(
-            _generate_meta_image(spec, config, scene, geometry, ring_radius, unit, rng, root, advance)
+            _generate_meta_image(spec, config, scene, surfaces, ring_radius, unit, rng, root, advance)
         )
     manifest["wall_time_s"] = round(time.perf_counter() - started, 2)
     (root / "scene.json").write_text(json.dumps(manifest, indent=2))
     return manifest
 
 
-def _generate_meta_image(spec, config, scene, geometry, ring_radius, unit, rng, root, advance) -> dict:
+def _generate_meta_image(spec, config, scene, surfaces: list[Surface], ring_radius, unit, rng, root, advance) -> dict:
     b = config.building
     facade = (b.width if spec.side in ("front", "rear") else b.depth, b.height)
     shots = scale_shots(
@@ -346,7 +353,7 @@ def _generate_meta_image(spec, config, scene, geometry, ring_radius, unit, rng, 
     renders = []
     for shot in shots:
         look = random_look(config.appearance_strength, rng)
-        image, depth = render_shot(geometry, sun_lighting(scene.albedo_sharp, scene.normals, look), shot, look.sky)
+        image, depth = raycast_shot(surfaces, partial(sun_lighting, look=look), PHOTO_SOFTNESS, shot, look.sky, 1.0 / unit)
         coverage = 0.0
         if rng.random() < config.occluder_rate:
             image, coverage = draw_occluders(image, rng.uniform(*config.occluder_coverage), rng)

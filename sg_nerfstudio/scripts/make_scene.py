@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     metas = ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in manifest["meta_images"])
     console.print(
         f"Wrote {args.output}: reference capture of {manifest['reference']['n_images']} views, "
-        f"meta-images {metas}, {manifest['n_gaussians']} Gaussians, in {manifest['wall_time_s']} s.",
+        f"meta-images {metas}, {manifest['reference']['n_points3D']} reference SfM points, in {manifest['wall_time_s']} s.",
         soft_wrap=True,
         markup=False,
     )

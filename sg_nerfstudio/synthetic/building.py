@@ -48,9 +48,10 @@ class BuildingConfig:
     ground_radius: float = 55.0
     """Radius of the textured ground disc."""
     ground_density: float = 0.25
-    """Gaussians per square metre on the ground relative to the building surfaces."""
+    """Gaussians (surface points) per square metre on the ground relative to the building surfaces."""
     n_gaussians: int = 20000
-    """Total number of Gaussians."""
+    """Total number of Gaussians of the splat form; their centres are the candidate points of the scene's
+    COLMAP point clouds (the images are ray-cast from the surfaces, see raycast.py)."""
     palette_seed: int = 0
     """Seed of the colour palette and pattern jitter."""
 

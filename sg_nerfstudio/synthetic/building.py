@@ -65,27 +65,17 @@ class GaussianScene:
         quats: [N, 4] (w, x, y, z) rotations whose third axis is the surface normal.
         scales: [N, 3] standard deviations along the local axes.
         opacities: [N] in (0, 1].
-        normals: [N, 3] outward unit surface normals.
-        albedo_sharp: [N, 3] photo albedo in [0, 1].
-        albedo_smooth: [N, 3] reference ("pseudo-synthetic") albedo in [0, 1].
-        is_ground: [N] bool, Gaussians of the ground disc.
     """
 
     means: Array
     quats: Array
     scales: Array
     opacities: Array
-    normals: Array
-    albedo_sharp: Array
-    albedo_smooth: Array
-    is_ground: Array
 
     def scaled(self, factor: float) -> "GaussianScene":
         """The same scene with all lengths multiplied by `factor` (about the world origin)."""
         return GaussianScene(
-            means=self.means * factor, quats=self.quats, scales=self.scales * factor,
-            opacities=self.opacities, normals=self.normals, albedo_sharp=self.albedo_sharp,
-            albedo_smooth=self.albedo_smooth, is_ground=self.is_ground,
+            means=self.means * factor, quats=self.quats, scales=self.scales * factor, opacities=self.opacities,
         )
 
 
@@ -113,7 +103,6 @@ class Surface:
     pattern: Pattern
     intersect: Intersect
     density: float = 1.0
-    is_ground: bool = False
 
 
 def _smoothstep_inside(signed_distance: Array, softness: float) -> Array:
@@ -164,8 +153,8 @@ def decals(uv: Array, color: Array, softness: float, seed: int, rate: float = 0.
 
     Repeated windows and pilasters give SIFT nothing to tell apart; real facades and squares are full of
     one-off details. In a fraction `rate` of the cells of a `DECAL_CELL` grid sits one disc or square of
-    its own size (0.3-1.4 m across), position and colour, dark or light, so
-    that it contrasts with whatever lies under it.
+    its own size (0.3-1.4 m across), position and colour, dark or light, so that it contrasts with
+    whatever lies under it.
 
     Args:
         uv: [n, 2] pattern coordinates in metres; color: [n, 3] the pattern's colour there.
@@ -360,7 +349,7 @@ def ground_disc(radius: float, pattern: Pattern, density: float) -> Surface:
         hit = np.isfinite(t) & (np.hypot(xy[:, 0], xy[:, 1]) <= radius)
         return np.where(hit, t, np.inf), xy, np.repeat(up[None], len(rays), 0)
 
-    return Surface("ground", np.pi * radius**2, sample, pattern, intersect, density, is_ground=True)
+    return Surface("ground", np.pi * radius**2, sample, pattern, intersect, density)
 
 
 def dome(centre: Array, radius: float, pattern: Pattern) -> Surface:
@@ -512,8 +501,6 @@ def build_landmark(config: BuildingConfig, seed: int) -> GaussianScene:
         scales = np.concatenate([tangent_sigma, 0.08 * tangent_sigma.mean(1, keepdims=True)], axis=1)
         parts.append(dict(
             means=samples.points, quats=rotation_to_quat(rot), scales=scales,
-            opacities=np.full(count, 0.97), normals=samples.normals,
-            albedo_sharp=surface.pattern(samples.uv, 0.04), albedo_smooth=surface.pattern(samples.uv, 0.6),
-            is_ground=np.full(count, surface.is_ground),
+            opacities=np.full(count, 0.97),
         ))
     return GaussianScene(**{key: np.concatenate([p[key] for p in parts]) for key in parts[0]})

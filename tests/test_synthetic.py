@@ -179,16 +179,31 @@ def test_rays_hit_every_surface_where_its_samples_lie(roof):
         assert np.all(t[reached] <= 1.0 + 1e-6), surface.name
 
 
-def test_ray_cast_depth_follows_the_distorted_camera():
-    """Depth of a wall seen through a SIMPLE_RADIAL camera is exact at every pixel (rays come from the
-    camera model, not from resampling a pinhole render)."""
+def test_ray_cast_follows_the_distorted_camera():
+    """A marked point of a wall appears where the SIMPLE_RADIAL model projects it (rays come from the camera
+    model, not from resampling a pinhole render), and depth is the camera-z distance in scene units."""
     from sg_nerfstudio.synthetic.building import planar_patch
     from sg_nerfstudio.synthetic.capture import Shot, pinhole_camera
     from sg_nerfstudio.synthetic.raycast import raycast_shot
 
-    wall = planar_patch("wall", [-50.0, 10.0, -50.0], [1.0, 0, 0], [0, 0, 1.0], (100.0, 100.0), lambda uv, soft: np.full((len(uv), 3), 0.5))
-    camera = pinhole_camera(1, 40, 30, 70.0, k1=0.06)
-    looking_at_wall = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])), np.zeros(3))
-    image, depth = raycast_shot([wall], lambda albedo, normals: albedo, 0.04, Shot("w", camera, looking_at_wall), np.zeros(3), 2.0)
-    np.testing.assert_allclose(depth, 10.0 / 2.0, rtol=1e-9)  # the wall is 10 m ahead, 2 m per scene unit
-    np.testing.assert_allclose(image, 0.5)
+    mark = np.array([4.0, 10.0, -2.5])  # metres; the wall is the plane y = 10, uv = (x + 50, z + 50)
+
+    def disc(uv, softness):
+        inside = np.hypot(uv[:, 0] - (mark[0] + 50), uv[:, 1] - (mark[2] + 50)) < 0.6
+        return np.repeat(np.where(inside, 0.0, 1.0)[:, None], 3, axis=1)
+
+    wall = planar_patch("wall", [-50.0, 10.0, -50.0], [1.0, 0, 0], [0, 0, 1.0], (100.0, 100.0), disc)
+    camera = pinhole_camera(1, 40, 30, 70.0, k1=0.3)
+    looking_along_y = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])), np.zeros(3))
+    metres_per_unit = 2.0
+    image, depth = raycast_shot([wall], lambda albedo, normals: albedo, 0.04, Shot("w", camera, looking_along_y), np.zeros(3), metres_per_unit)
+    np.testing.assert_allclose(depth, 10.0 / metres_per_unit, rtol=1e-9)
+
+    darkness = 1.0 - image[..., 0]
+    rows, cols = np.mgrid[0:30, 0:40] + 0.5  # COLMAP pixel centres
+    centroid = np.array([(darkness * cols).sum(), (darkness * rows).sum()]) / darkness.sum()
+    mark_camera = np.array([[mark[0], -mark[2], mark[1]]])
+    expected = camera.img_from_cam(mark_camera)[0]
+    pinhole = pinhole_camera(1, 40, 30, 70.0).img_from_cam(mark_camera)[0]
+    assert np.linalg.norm(expected - pinhole) > 0.5  # the distortion moves the mark measurably
+    np.testing.assert_allclose(centroid, expected, atol=0.15)

@@ -35,13 +35,15 @@ def cpu_config(data: Path, output: Path, steps: int, teacher: TeacherConfig, exp
 def short_cpu_schedule(config: TrainerConfig) -> TrainerConfig:
     """Splatfacto's schedule scaled to a short CPU run of `config.max_num_iterations` steps (in place).
 
-    Splatfacto doubles the training resolution every 3000 of its 30000 steps and densifies until step
-    15000; here the resolution doubles every sixth of the run and densification stops at 40% of it, which
-    bounds the Gaussian count (hence the CPU step time) and leaves most steps to refine at full size. The
-    background is learned: the Gaussians that SfM points initialise never cover a smooth sky.
+    Splatfacto doubles the training resolution every 3000 of its 30000 steps, starts densifying after 500
+    steps and stops at step 15000; here the resolution doubles every sixth of the run, densification starts
+    after a sixth (splatfacto's 500 for a 3000-step run) and stops at 40% of it, which bounds the Gaussian
+    count (hence the CPU step time) and leaves most steps to refine at full size. The background is learned:
+    the Gaussians that SfM points initialise never cover a smooth sky.
     """
     steps = config.max_num_iterations
     config.pipeline.model.resolution_schedule = max(steps // 6, 1)
+    config.pipeline.model.warmup_length = min(config.pipeline.model.warmup_length, max(steps // 6, 1))
     config.pipeline.model.stop_split_at = int(0.4 * steps)
     config.pipeline.model.background_color = "learned"
     return config

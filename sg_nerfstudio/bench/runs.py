@@ -55,8 +55,8 @@ ABLATIONS = {
 @dataclass
 class BenchOptions:
     settings: RegistrationSettings
-    train_steps: int = 3000
-    initialisers: tuple[str, ...] = ("colmap", "generalized", "perturbed")
+    train_steps: int = 1500
+    initialisers: tuple[str, ...] = ("colmap", "generalized")
     ablations: tuple[str, ...] = ()
     noise_levels: tuple[float, ...] = ()
     sizes: tuple[int, ...] = ()

@@ -108,12 +108,12 @@ SUITES: dict[str, dict[str, SceneConfig]] = {
     # 2-3 meta-images each on different sides with 8-60 photos, occluder rates 0.1-0.45 and appearance
     # strength 0.5-1.0. Each scene is what `--preset default` writes, with other settings.
     "benchmark": {
-        "cathedral": _landmark(101, ("front:24", "rear:12", "left:8"), 0.3, 1.0),
-        "chapel": _landmark(102, ("front:10", "right:16"), 0.1, 0.6, width=18.0, depth=14.0, height=10.0, towers=1, roof="pitched", window_cols=4),
-        "domed-hall": _landmark(103, ("rear:20", "left:10", "right:8"), 0.25, 0.8, width=26.0, depth=26.0, height=14.0, towers=0, roof="dome"),
-        "fortress": _landmark(104, ("front:60", "rear:9"), 0.45, 0.9, width=36.0, depth=24.0, height=12.0, towers=2, roof="flat", tower_height_ratio=1.4),
-        "bell-tower": _landmark(105, ("left:14", "front:8"), 0.2, 0.5, width=14.0, depth=12.0, height=12.0, towers=1, roof="pitched", tower_height_ratio=2.4, window_rows=4, window_cols=3),
-        "town-hall": _landmark(106, ("front:30", "right:12", "rear:10"), 0.35, 1.0, width=40.0, depth=16.0, height=15.0, towers=0, roof="flat", window_rows=4, window_cols=8),
+        "cathedral": _landmark(101, ("front:16", "rear:10", "left:8"), 0.3, 1.0),
+        "chapel": _landmark(102, ("front:10", "right:12"), 0.1, 0.6, width=18.0, depth=14.0, height=10.0, towers=1, roof="pitched", window_cols=4),
+        "domed-hall": _landmark(103, ("rear:14", "left:10", "right:8"), 0.25, 0.8, width=26.0, depth=26.0, height=14.0, towers=0, roof="dome"),
+        "fortress": _landmark(104, ("front:32", "rear:8"), 0.45, 0.9, width=36.0, depth=24.0, height=12.0, towers=2, roof="flat", tower_height_ratio=1.4),
+        "bell-tower": _landmark(105, ("left:12", "front:8"), 0.2, 0.5, width=14.0, depth=12.0, height=12.0, towers=1, roof="pitched", tower_height_ratio=2.4, window_rows=4, window_cols=3),
+        "town-hall": _landmark(106, ("front:20", "right:10", "rear:8"), 0.35, 1.0, width=40.0, depth=16.0, height=15.0, towers=0, roof="flat", window_rows=4, window_cols=8),
     },
     # Two tiny scenes: the benchmark pipeline end to end in the tests.
     "tiny-benchmark": {

@@ -32,7 +32,7 @@ def preset(tmp_path_factory) -> Path:
 
 
 def test_benchmark_suite_definitions_follow_the_issue():
-    """The default suite: at least 6 landmarks, 2-3 meta-images each, 8-60 photos, varied occluders and appearance."""
+    """The default suite: at least 6 landmarks, 2-3 meta-images each, 8-60 photos (the issue's range), varied occluders and appearance."""
     scenes = SUITES["benchmark"]
     assert len(scenes) >= 6
     shapes = {(c.building.towers, c.building.roof, c.building.width, c.building.depth) for c in scenes.values()}

@@ -11,11 +11,21 @@ from nerfstudio.utils.eval_utils import eval_setup
 
 from sg_nerfstudio.datamanager import DatasetInputError
 from sg_nerfstudio.features import TeacherConfig, TeacherInputError
+from sg_nerfstudio.training import cpu_config, short_cpu_schedule
 from conftest import make_config
 
 
 def window_mean(history, key, start, stop):
     return sum(h[key] for h in history[start:stop]) / (stop - start)
+
+
+@pytest.mark.parametrize("steps, warmup, stop", [(1500, 250, 600), (3000, 500, 1200), (6000, 500, 2400)])
+def test_short_cpu_schedule_densifies_within_the_run(tmp_path, steps, warmup, stop):
+    """Densification starts after a sixth of a short run (never later than splatfacto's 500) and ends at 40%."""
+    config = short_cpu_schedule(cpu_config(tmp_path, tmp_path, steps, TeacherConfig(name="offline")))
+    model = config.pipeline.model
+    assert (model.warmup_length, model.stop_split_at, model.resolution_schedule) == (warmup, stop, steps // 6)
+    assert model.warmup_length < model.stop_split_at <= steps
 
 
 def test_training_reduces_colour_and_feature_losses(trained):

@@ -105,8 +105,9 @@ def _landmark(seed: int, metas: tuple[str, ...], occluders: float, appearance: f
 
 SUITES: dict[str, dict[str, SceneConfig]] = {
     # `sg-make-scene --preset benchmark`: six landmarks of different shape (towers, roofs, proportions),
-    # 2-3 meta-images each on different sides with 8-60 photos, occluder rates 0.1-0.45 and appearance
-    # strength 0.5-1.0. Each scene is what `--preset default` writes, with other settings.
+    # 2-3 meta-images each on different sides with 8-32 photos (186 in all: sg-bench's defaults run in 26
+    # minutes on a 2-core CPU), occluder rates 0.1-0.45 and appearance strength 0.5-1.0. Each scene is what
+    # `--preset default` writes, with other settings.
     "benchmark": {
         "cathedral": _landmark(101, ("front:16", "rear:10", "left:8"), 0.3, 1.0),
         "chapel": _landmark(102, ("front:10", "right:12"), 0.1, 0.6, width=18.0, depth=14.0, height=10.0, towers=1, roof="pitched", window_cols=4),

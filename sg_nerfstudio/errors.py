@@ -1,11 +1,17 @@
-"""User-input errors: one sentence naming the input and what was expected, then a non-zero exit.
+"""User-input errors: one sentence naming the input and what was expected.
 
-`InputError` is a SystemExit, so a command line prints only the sentence (no traceback) and exits with
-status 1, while library callers and tests can still catch the specific subclass.
+`InputError` is an ordinary exception: library callers catch the specific subclass, and every command
+catches it once, in `sg_nerfstudio.scripts.cli.cli_main`, which prints the sentence (no traceback) and
+exits with status 1. Under `ns-train` (nerfstudio's own command) `install_input_error_hook` does the same
+for an InputError that reaches the top, e.g. a dataset with missing images.
 """
 
+from __future__ import annotations
 
-class InputError(SystemExit):
+import sys
+
+
+class InputError(Exception):
     """An input (file, flag, dataset, checkpoint) that cannot be used as given."""
 
     def __init__(self, message: str):
@@ -14,3 +20,19 @@ class InputError(SystemExit):
 
     def __str__(self) -> str:
         return self.message
+
+
+def install_input_error_hook() -> None:
+    """Print an uncaught InputError as its sentence on stderr (exit status 1); anything else as before."""
+    previous = sys.excepthook
+    if getattr(previous, "prints_input_errors", False):
+        return
+
+    def hook(kind, error, traceback) -> None:
+        if isinstance(error, InputError):
+            print(str(error), file=sys.stderr)
+            return
+        previous(kind, error, traceback)
+
+    hook.prints_input_errors = True
+    sys.excepthook = hook

@@ -9,7 +9,7 @@ import torch
 
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.scripts.make_scene import main as make_scene_main
-from sg_nerfstudio.training import cpu_config, save, train
+from sg_nerfstudio.splat.training import cpu_config, save, train
 
 
 @pytest.fixture(scope="session")

@@ -51,7 +51,7 @@ def test_suite_layout_is_read_back(suite):
 
 def test_sg_bench_writes_tables_and_resumes(suite, preset, tmp_path, capsys):
     output = tmp_path / "results"
-    args = [str(suite), "--output", str(output), "--preset", str(preset), "--train-steps", "20",
+    args = [str(suite), "--output", str(output), "--config", str(preset), "--train-steps", "20",
             "--initialisers", "colmap", "perturbed", "--ablations", "none", "--noise-levels", "2", "8", "--sizes", "3"]
     assert bench_main(args) == 0, capsys.readouterr().err
     records = [json.loads(p.read_text()) for p in sorted((output / "runs").glob("*/*/*.json"))]

@@ -9,9 +9,9 @@ import torch
 
 from nerfstudio.utils.eval_utils import eval_setup
 
-from sg_nerfstudio.datamanager import DatasetInputError
+from sg_nerfstudio.splat.datamanager import DatasetInputError
 from sg_nerfstudio.features import TeacherConfig, TeacherInputError
-from sg_nerfstudio.training import cpu_config, short_cpu_schedule
+from sg_nerfstudio.splat.training import cpu_config, short_cpu_schedule
 from conftest import make_config
 
 

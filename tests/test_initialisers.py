@@ -19,7 +19,8 @@ import pycolmap
 import pytest
 
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
-from sg_nerfstudio.registration.meta_image import load_meta_image
+from sg_nerfstudio.geometry.meta_image import load_meta_image
+from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.scripts.init_baseline import main as baseline_main
 from sg_nerfstudio.synthetic.capture import Shot, look_at, pinhole_camera
@@ -150,8 +151,8 @@ def initialiser(scene, cache_dir) -> Initialiser:
     return Initialiser(source, InitialiserSettings(cache_dir=cache_dir))
 
 
-def ground_truth(meta_dir: Path) -> np.ndarray:
-    return np.array(json.loads((meta_dir / "gt_transform.json").read_text())["matrix"])
+def ground_truth(meta_dir: Path) -> Sim3:
+    return Sim3.from_matrix(json.loads((meta_dir / "gt_transform.json").read_text())["matrix"])
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -15,12 +15,15 @@ import pytest
 import torch
 import yaml
 
-from sg_nerfstudio.registration.meta_image import load_meta_image
-from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.features import TeacherConfig, build_teacher
-from sg_nerfstudio.registration.optimize import Objective, RegistrationSettings, camera_viewmat, prepare_photos, register, teacher_on_render_target
+from sg_nerfstudio.geometry.frames import viewmat
+from sg_nerfstudio.geometry.meta_image import load_meta_image
+from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
+from sg_nerfstudio.registration.metrics import pose_errors
+from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos, teacher_on_render_target
+from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import load_reference
-from sg_nerfstudio.registration.sim3 import about_point, decompose, invert, perturbation, update_matrix
+from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.scripts.register_meta import main as register_main
 
 FAST = dict(steps=150, lr=0.004, lr_final=0.0002, images_per_step=0, render_scale=2.0, seed=0)
@@ -43,47 +46,46 @@ def meta(tiny_scene):
 
 
 @pytest.fixture(scope="module")
-def ground_truth(tiny_scene) -> np.ndarray:
-    return np.array(json.loads((tiny_scene / "meta" / "front" / "gt_transform.json").read_text())["matrix"])
+def ground_truth(tiny_scene) -> Sim3:
+    return Sim3.read_json(tiny_scene / "meta" / "front" / "gt_transform.json", "Ground truth")
 
 
-def perturbed_start(meta, ground_truth, seed, rotation_deg, translation, scale_fraction):
+def perturbed_start(meta, ground_truth, seed, rotation_deg, translation, scale_fraction) -> Sim3:
     """ground truth followed by a perturbation about the cameras' centroid in the reference frame."""
-    noise = perturbation(np.random.default_rng(seed), rotation_deg, translation, scale_fraction)
-    return about_point(noise, meta.centroid_under(ground_truth)) @ ground_truth
+    return perturbed(ground_truth, meta.centres, np.random.default_rng(seed), rotation_deg, translation, scale_fraction)
 
 
 def test_sim3_helpers():
     rng = np.random.default_rng(0)
-    matrix = perturbation(rng, 5.0, 0.1, 0.1)
-    scale, rotation, translation = decompose(matrix)
+    transform = Sim3.random(rng, 5.0, 0.1, 0.1)
+    scale, rotation, translation = transform.scale, transform.rotation, transform.translation
     assert scale == pytest.approx(1.1) or scale == pytest.approx(0.9)
     assert np.degrees(np.arccos((np.trace(rotation) - 1) / 2)) == pytest.approx(5.0)
     assert np.linalg.norm(translation) == pytest.approx(0.1)
-    np.testing.assert_allclose(invert(matrix) @ matrix, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose((transform.inverse() @ transform).matrix, np.eye(4), atol=1e-12)
     centre = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
-    np.testing.assert_allclose(update_matrix(torch.zeros(7, dtype=torch.float64), centre).numpy(), np.eye(4), atol=1e-15)
+    np.testing.assert_allclose(Sim3.update(torch.zeros(7, dtype=torch.float64), centre).matrix.numpy(), np.eye(4), atol=1e-15)
     delta = torch.tensor([0.1, -0.2, 0.05, 0.3, 0.0, -0.1, 0.2], dtype=torch.float64)
-    moved = update_matrix(delta, centre).numpy() @ np.append(centre.numpy(), 1)
+    moved = Sim3.update(delta, centre).matrix.numpy() @ np.append(centre.numpy(), 1)
     np.testing.assert_allclose(moved[:3], centre.numpy() + delta[3:6].numpy(), atol=1e-12)  # the centre only translates
     with pytest.raises(ValueError, match="positive"):
         decompose(np.diag([-1.0, 1.0, 1.0, 1.0]))
 
 
 def test_camera_viewmat_matches_pycolmap_similarity(meta):
-    matrix = perturbation(np.random.default_rng(1), 20.0, 0.5, 0.3)
-    scale, rotation, translation = decompose(matrix)
+    transform = Sim3.random(np.random.default_rng(1), 20.0, 0.5, 0.3)
     moved = pycolmap.Reconstruction(meta.reconstruction)
-    moved.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
-    torch_matrix = torch.from_numpy(matrix)
+    moved.transform(pycolmap.Sim3d(transform.scale, pycolmap.Rotation3d(transform.rotation), transform.translation))
+    on_torch = transform.to_torch()
     for photo in meta.photos:
-        ours = camera_viewmat(torch.from_numpy(photo.cam_from_world), torch_matrix[:3, :3], torch_matrix[:3, 3], torch.tensor(scale, dtype=torch.float64))
+        ours = viewmat(on_torch.move_camera(torch.from_numpy(photo.cam_from_world))).float()
         expected = moved.find_image_with_name(photo.name).cam_from_world().matrix()
         np.testing.assert_allclose(ours[:3].numpy(), expected, atol=1e-5)
+        np.testing.assert_allclose(transform.move_camera(photo.cam_from_world), expected, atol=1e-9)  # numpy, same function
 
 
 def test_pose_errors(meta, ground_truth):
-    poses = [p.cam_from_world for p in meta.photos]
+    poses = meta.poses
     assert pose_errors(poses, ground_truth, ground_truth).rotation_deg == pytest.approx(0.0, abs=1e-4)
     rotated = perturbed_start(meta, ground_truth, 0, 7.0, 0.0, 0.0)
     errors = pose_errors(poses, rotated, ground_truth)
@@ -97,15 +99,13 @@ def checkpoint_digest(path: Path) -> str:
 
 def rendered_targets(reference, meta, photos, transform, settings):
     """Replace each photo's target by what the objective sees of the model itself rendered at `transform`."""
-    objective = Objective(reference, photos, settings, 0.01)
-    matrix = torch.from_numpy(reference.world_to_dataparser @ transform)
-    scale = torch.tensor(decompose(matrix.numpy())[0], dtype=torch.float64)
-    kind = "features" if settings.objective == "features" else "photometric"
+    objective = build_objective(reference, settings)
+    meta_to_dataparser = (reference.world_to_dataparser @ transform).to_torch()
     for photo in photos:
-        viewmat = camera_viewmat(photo.cam_from_meta, matrix[:3, :3], matrix[:3, 3], scale)
+        camera = viewmat(meta_to_dataparser.move_camera(photo.cam_from_meta)).float()
         with torch.no_grad():
-            rendered, _ = reference.render(viewmat[None], photo.K[None], photo.width, photo.height, 0.01, kind)
-            photo.target = objective.on_target_grid(rendered, photo.target)[0]
+            rendered, _ = objective.render(reference, camera[None], photo.K[None], photo.width, photo.height, 0.01, "auto")
+            photo.target = objective.to_target_grid(rendered, photo.target)[0]
     return photos
 
 
@@ -133,7 +133,7 @@ def test_registration_converges_where_the_optimum_is_known_and_leaves_the_model_
     photos = rendered_targets(reference, meta, prepare_photos(reference, meta, settings), ground_truth, settings)
     start = perturbed_start(meta, ground_truth, 0, 4.0, 0.06, 0.06)
     result = register(reference, meta, start, settings, photos=photos)
-    poses = [p.cam_from_world for p in meta.photos]
+    poses = meta.poses
     initial, final = pose_errors(poses, start, ground_truth), pose_errors(poses, result.transform, ground_truth)
     assert final.rotation_deg < 0.25 * initial.rotation_deg, (initial, final)
     assert final.translation < 0.25 * initial.translation, (initial, final)
@@ -146,19 +146,18 @@ def test_registration_converges_where_the_optimum_is_known_and_leaves_the_model_
 
 def test_batched_rendering_gives_the_per_photo_losses(reference, meta, ground_truth, monkeypatch):
     """Photos rendered together (one packed projection) or one per call give the same losses and coverage."""
-    from sg_nerfstudio.registration import optimize
+    from sg_nerfstudio.registration import objectives
 
     settings = RegistrationSettings(**FAST, objective="teacher-on-render")
     photos = prepare_photos(reference, meta, settings)
-    matrix = torch.from_numpy(reference.world_to_dataparser @ ground_truth)
-    scale = torch.tensor(decompose(matrix.numpy())[0], dtype=torch.float64)
+    transform = (reference.world_to_dataparser @ ground_truth).to_torch()
     indices = list(range(len(photos)))[::-1]
-    objective = Objective(reference, photos, settings, 0.01)
+    objective = PhotoLosses(reference, photos, build_objective(reference, settings), settings, 0.01)
     assert len(objective.same_size_groups(indices)) < len(indices)  # several photos share a render call
-    together, coverage_together = objective(matrix, scale, indices)
-    monkeypatch.setattr(optimize, "RENDER_BATCH_ELEMENTS", 1)
+    together, coverage_together = objective(transform, indices)
+    monkeypatch.setattr(objectives, "RENDER_BATCH_ELEMENTS", 1)
     assert len(objective.same_size_groups(indices)) == len(indices)
-    alone, coverage_alone = objective(matrix, scale, indices)
+    alone, coverage_alone = objective(transform, indices)
     torch.testing.assert_close(torch.stack(together), torch.stack(alone), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(coverage_together, coverage_alone, rtol=1e-5, atol=1e-6)
 
@@ -188,7 +187,7 @@ def run_cli(args: list[str], capsys) -> tuple[int, str]:
 def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys, ground_truth):
     start = perturbed_start(load_meta_image(tiny_scene / "meta" / "front"), ground_truth, 7, 3.0, 0.05, 0.05)
     init = tmp_path / "init.json"
-    init.write_text(json.dumps({"matrix": start.tolist()}))
+    init.write_text(json.dumps({"matrix": np.asarray(start).tolist()}))
     out = tmp_path / "out"
     code, err = run_cli([
         "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
@@ -286,15 +285,14 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # inputs untouched
 
 
-def moved_meta_image(source: Path, target: Path, similarity: np.ndarray) -> Path:
+def moved_meta_image(source: Path, target: Path, similarity: Sim3) -> Path:
     """A copy of a meta-image expressed in another frame (x_new = similarity x_old), with its ground truth."""
     shutil.copytree(source, target)
     sparse = target / "sparse" / "0" if (target / "sparse" / "0").is_dir() else target / "sparse"
     reconstruction = pycolmap.Reconstruction(str(sparse))
-    scale, rotation, translation = decompose(similarity)
-    reconstruction.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
+    reconstruction.transform(pycolmap.Sim3d(similarity.scale, pycolmap.Rotation3d(similarity.rotation), similarity.translation))
     reconstruction.write_binary(str(sparse))
-    truth = np.array(json.loads((source / "gt_transform.json").read_text())["matrix"]) @ invert(similarity)
+    truth = np.array(json.loads((source / "gt_transform.json").read_text())["matrix"]) @ similarity.inverse().matrix
     (target / "gt_transform.json").write_text(json.dumps({"matrix": truth.tolist()}))
     return target
 
@@ -303,7 +301,7 @@ def test_several_meta_images_merge_into_one_model_in_the_reference_frame(referen
     """Two meta-images (the second in another frame) registered in one call land in merged/ with every
     camera where its own registration put it, which is within the registration tolerance of the truth."""
     first = tiny_scene / "meta" / "front"
-    second = moved_meta_image(first, tmp_path / "front_moved", perturbation(np.random.default_rng(3), 40.0, 2.0, 0.5))
+    second = moved_meta_image(first, tmp_path / "front_moved", Sim3.random(np.random.default_rng(3), 40.0, 2.0, 0.5))
     out = tmp_path / "out"
     metas = [first, second]
     args = ["--load-config", str(reference_config), "--output-dir", str(out), "--steps", "5", "--lr", "0.001", "--merge-reference"]
@@ -324,6 +322,6 @@ def test_several_meta_images_merge_into_one_model_in_the_reference_frame(referen
         for photo in meta.photos:
             image = merged.find_image_with_name(f"{meta.name}/{photo.name}")
             np.testing.assert_allclose(image.projection_center(), (result @ np.append(photo.centre, 1))[:3], atol=1e-6)
-        errors = pose_errors([p.cam_from_world for p in meta.photos], result, truth)
+        errors = pose_errors(meta.poses, Sim3.from_matrix(result), Sim3.from_matrix(truth))
         assert errors.rotation_deg < 1.0 and errors.translation < 0.05, errors
     assert {track.image_id for point in merged.points3D.values() for track in point.track.elements} <= set(merged.reg_image_ids())

@@ -24,12 +24,13 @@ import yaml
 from rich.console import Console
 from websockets.sync.client import connect
 
-from sg_nerfstudio.registration.meta_image import load_meta_image
+from sg_nerfstudio.geometry.frames import opengl_camera_to_world
+from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.scripts.register_meta import main as register_main
-from sg_nerfstudio.scripts.view_registration import (
-    KIND_COLOURS, ViewRegistrationArgs, dataparser_camera_to_world, frustum_name, main, read_world_to_dataparser,
-    start_viewer, viewer_pose,
-)
+from sg_nerfstudio.scripts.view_registration import main
+from sg_nerfstudio.splat.trained import read_world_to_dataparser
+from sg_nerfstudio.viewer.scene import KIND_COLOURS, frustum_name, viewer_pose
+from sg_nerfstudio.viewer.session import ViewRegistrationArgs, start_viewer
 
 KINDS = ("initial", "final", "ground_truth")
 
@@ -118,7 +119,7 @@ def test_frustums_follow_the_transform_the_viewer_applies_to_training_cameras(se
     compared = 0
     for index, handle in session.viewer.camera_handles.items():
         image = by_name[Path(filenames[index]).name]
-        wxyz, position = viewer_pose(dataparser_camera_to_world(image.cam_from_world().matrix(), world_to_dataparser))
+        wxyz, position = viewer_pose(world_to_dataparser.move_camera(image.cam_from_world().matrix()))
         np.testing.assert_allclose(position, handle.position, atol=1e-4)
         np.testing.assert_allclose(vtf.SO3(wxyz).as_matrix(), vtf.SO3(np.asarray(handle.wxyz)).as_matrix(), atol=1e-5)
         compared += 1
@@ -199,7 +200,8 @@ def test_feature_pca_is_a_stable_viewer_output(session):
     from nerfstudio.cameras.cameras import CameraType
     from nerfstudio.viewer.utils import CameraState, get_camera
 
-    c2w = torch.from_numpy(session.scene.frustums[next(iter(session.scene.frustums))].camera_to_world).float()
+    frustum = session.scene.frustums[next(iter(session.scene.frustums))]
+    c2w = torch.from_numpy(opengl_camera_to_world(frustum.cam_from_dataparser)).float()
     state = CameraState(fov=0.9, aspect=4 / 3, c2w=c2w, camera_type=CameraType.PERSPECTIVE)
     model = session.viewer.get_model()
     first = model.get_outputs_for_camera(get_camera(state, 48, 64))

@@ -19,10 +19,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.registration.sim3 import decompose
+from sg_nerfstudio.geometry.sim3 import Sim3
 
 REFERENCE_MODELS = (Path("colmap") / "sparse" / "0", Path("sparse") / "0")
 
@@ -35,7 +34,7 @@ class BenchmarkLayoutError(InputError):
 class BenchmarkMeta:
     name: str
     directory: Path
-    ground_truth: np.ndarray  # [4, 4] meta -> reference world
+    ground_truth: Sim3  # meta -> reference world
 
 
 @dataclass
@@ -82,8 +81,7 @@ def read_scene(directory: Path) -> BenchmarkScene:
 def read_meta(directory: Path) -> BenchmarkMeta:
     path = directory / "gt_transform.json"
     try:
-        matrix = np.asarray(json.loads(path.read_text())["matrix"], dtype=np.float64)
-        decompose(matrix)
+        truth = Sim3.from_matrix(json.loads(path.read_text())["matrix"])
     except Exception as error:
         raise BenchmarkLayoutError(f"Meta-image {directory} needs gt_transform.json with a 4x4 similarity \"matrix\" (meta -> reference world) ({type(error).__name__}).") from None
-    return BenchmarkMeta(directory.name, directory, matrix)
+    return BenchmarkMeta(directory.name, directory, truth)

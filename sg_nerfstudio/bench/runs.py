@@ -30,16 +30,17 @@ import numpy as np
 from sg_nerfstudio.bench.layout import BenchmarkMeta, BenchmarkScene
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import TeacherConfig
+from sg_nerfstudio.geometry.meta_image import MetaImage
+from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
-from sg_nerfstudio.registration.meta_image import MetaImage
 from sg_nerfstudio.registration.metrics import pose_errors
-from sg_nerfstudio.registration.optimize import RegistrationSettings, register
+from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
-from sg_nerfstudio.registration.sim3 import about_point, perturbation
+from sg_nerfstudio.registration.settings import RegistrationSettings
 
-Array = np.ndarray
 PERTURBED_START = (5.0, 0.1, 0.1)
-"""Rotation (degrees), translation (scene units) and scale fraction of the `perturbed` start."""
+"""Rotation (degrees), translation (scene units) and scale fraction of the `perturbed` start (also the
+registration benchmark's and the demo's)."""
 ABLATIONS = {
     "full": {},
     "decoded-features": {"objective": "features"},
@@ -103,7 +104,7 @@ def write_json_atomically(path: Path, record: dict) -> None:
 
 def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Callable[[int], None]) -> tuple[Path, float]:
     """config.yml of the scene's reference model (trained now or reused) and the training wall time."""
-    from sg_nerfstudio.training import cpu_config, save, short_cpu_schedule, train
+    from sg_nerfstudio.splat.training import cpu_config, save, short_cpu_schedule, train
 
     directory = output / "references" / scene.name
     marker = directory / "reference.json"
@@ -153,7 +154,7 @@ class SceneRunner:
             "start": spec.start, "label": spec.label, "init_failure": failure, "init_time_s": time.perf_counter() - started,
             "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0,
         }
-        poses = [p.cam_from_world for p in subject.photos]
+        poses = subject.poses
         if start is not None:
             record["before"] = summary(pose_errors(poses, start, meta.ground_truth))
             settings = replace(self.options.settings, seed=seed, **spec.overrides)
@@ -167,7 +168,7 @@ class SceneRunner:
         write_json_atomically(record_path(self.output, self.scene.name, meta.name, spec.name), record)
         return record
 
-    def start(self, meta: BenchmarkMeta, subject: MetaImage, spec: RunSpec, rng: np.random.Generator) -> tuple[Optional[Array], Optional[str]]:
+    def start(self, meta: BenchmarkMeta, subject: MetaImage, spec: RunSpec, rng: np.random.Generator) -> tuple[Optional[Sim3], Optional[str]]:
         """The initial transform of a run, or (None, the initialiser's failure sentence)."""
         truth = meta.ground_truth
         if spec.start in METHODS:
@@ -178,11 +179,8 @@ class SceneRunner:
                 except InputError as error:  # e.g. the reference images share too few SIFT matches
                     self.reference_unusable = str(error)
             return None, self.reference_unusable
-        if spec.start == "noise":
-            noise = perturbation(rng, spec.rotation_noise_deg, 0.0, 0.0)
-        else:
-            noise = perturbation(rng, *PERTURBED_START)
-        return about_point(noise, subject.centroid_under(truth)) @ truth, None
+        noise = (spec.rotation_noise_deg, 0.0, 0.0) if spec.start == "noise" else PERTURBED_START
+        return perturbed(truth, subject.centres, rng, *noise), None
 
 
 def summary(errors) -> dict:

@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 import pycolmap
 
-from sg_nerfstudio.registration.sim3 import sim3_matrix
+from sg_nerfstudio.geometry.sim3 import Sim3
 
 Array = np.ndarray
 
@@ -137,7 +137,7 @@ class GeneralizedSettings:
 
 @dataclass
 class GeneralizedPose:
-    transform: Array  # [4, 4] meta -> reference
+    transform: Sim3  # meta -> reference
     num_inliers: int
     inliers_per_photo: dict[str, int]
 
@@ -227,7 +227,7 @@ def generalized_similarity(photos: list[Observations], meta_depth: float, settin
         return None
     scale, rig_from_world = _refine_scale(problem, scale, rig_from_world, mask, step / 4)
     rotation = rig_from_world[:, :3].T
-    transform = sim3_matrix(scale, rotation, -rotation @ rig_from_world[:, 3])
+    transform = Sim3.from_parts(scale, rotation, -rotation @ rig_from_world[:, 3])
     return GeneralizedPose(transform, int(mask.sum()), per_photo)
 
 

@@ -45,7 +45,9 @@ from sg_nerfstudio.initialisers.reference_cloud import (
     build_reference_cloud,
 )
 from sg_nerfstudio.initialisers.retrieval import VisualWordIndex
-from sg_nerfstudio.registration.meta_image import MetaImage
+from sg_nerfstudio.geometry.meta_image import MetaImage
+from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.splat.trained import read_trainer_config
 
 Array = np.ndarray
 Method = Literal["colmap", "generalized"]
@@ -82,7 +84,7 @@ class InitResult:
     """Outcome of one initialiser on one meta-image.
 
     Attributes:
-        transform: [4, 4] Sim(3) meta -> reference world, None on failure.
+        transform: meta -> reference world, None on failure.
         failure: one sentence when the initialiser could not produce a transform.
         photos: per photo, its own registration (colmap) or inlier count (generalized).
         agreeing_photos: photos whose registered centre fits the Sim(3) (colmap) or that contribute
@@ -91,7 +93,7 @@ class InitResult:
 
     method: str
     meta_name: str
-    transform: Optional[Array]
+    transform: Optional[Sim3]
     failure: Optional[str]
     photos: list[PhotoPose]
     agreeing_photos: list[str]
@@ -118,8 +120,6 @@ class InitResult:
 
 def reference_source_from_config(config_path: Path) -> ReferenceSource:
     """The COLMAP model and images a trained sg-feature-splat was trained on (its dataparser's paths)."""
-    from sg_nerfstudio.registration.reference import read_trainer_config
-
     config = read_trainer_config(config_path)
     datamanager = config.pipeline.datamanager
     parser = datamanager.dataparser
@@ -255,7 +255,7 @@ class Initialiser:
             return self._failure("colmap", meta, poses, f"the {len(registered)} registered photos give no Sim(3) that at least {needed} of them fit within {max_error:.3g} reference units (best: {agreeing})")
         transform, inliers = found
         agreeing = [p.name for (_, p), keep in zip(registered, inliers) if keep]
-        return InitResult("colmap", meta.name, transform, None, poses, agreeing, 0.0)
+        return InitResult("colmap", meta.name, Sim3(transform), None, poses, agreeing, 0.0)
 
     def _generalized(self, meta: MetaImage, observations: list[Observations]) -> InitResult:
         advance = self.progress(f"Generalized pose of {meta.name}", 1)

@@ -1,6 +1,8 @@
 """Registration of meta-images to a frozen sg-feature-splat reference model (paper section 3).
 
-One module per stage: `meta_image` (read + validate + undistort), `reference` (load the frozen model and
-render it), `sim3` (transforms and the 7-parameter update), `robust` (per-image losses, LTS and
-ablations), `optimize` (the loop), `metrics` (ΔR, ΔT, MTA, O%), `outputs` (files and report).
+One module per role: `settings` (RegistrationSettings and the shipped presets), `reference` (load the
+frozen model and render it), `objectives` (features / teacher-on-render / photometric: targets, renders,
+per-photo losses), `robust` (LTS and its ablations), `optimize` (the loop: `register()`), `session`
+(several meta-images as ns-register-meta runs them), `outputs` (files and report), `metrics` (ΔR, ΔT,
+MTA, O%), `merge` (every aligned meta-image in one COLMAP model).
 """

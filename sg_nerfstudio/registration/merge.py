@@ -23,9 +23,8 @@ import numpy as np
 import pycolmap
 
 from sg_nerfstudio.atomic import atomic_directory
-from sg_nerfstudio.registration.sim3 import decompose
+from sg_nerfstudio.geometry.sim3 import Sim3
 
-Array = np.ndarray
 
 
 @dataclass
@@ -34,14 +33,14 @@ class MergePart:
 
     prefix: str
     reconstruction: pycolmap.Reconstruction
-    transform: Optional[Array] = None  # [4, 4] meta -> reference world that put it there (None: the reference)
+    transform: Optional[Sim3] = None  # meta -> reference world that put it there (None: the reference)
 
 
-def aligned_reconstruction(reconstruction: pycolmap.Reconstruction, transform: Array) -> pycolmap.Reconstruction:
-    """A copy of `reconstruction` with cameras and points moved by the similarity `transform` [4, 4]."""
+def aligned_reconstruction(reconstruction: pycolmap.Reconstruction, transform: Sim3) -> pycolmap.Reconstruction:
+    """A copy of `reconstruction` with cameras and points moved by `transform` (pycolmap moves them: the same
+    camera motion as `Sim3.move_camera`, which the tests check against it)."""
     moved = pycolmap.Reconstruction(reconstruction)
-    scale, rotation, translation = decompose(transform)
-    moved.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
+    moved.transform(pycolmap.Sim3d(transform.scale, pycolmap.Rotation3d(np.asarray(transform.rotation)), np.asarray(transform.translation)))
     return moved
 
 

@@ -1,7 +1,7 @@
 """Registration errors as the paper defines them (section 5.1).
 
 For a meta-image and a transform T (meta -> reference world), each photo's camera is moved by T and by
-the ground truth; ΔR is the RMS over photos of the geodesic angle between the two camera rotations
+the ground truth (`Sim3.move_camera`); ΔR is the RMS over photos of the geodesic angle between the two camera rotations
 (degrees), ΔT the RMS distance between the two camera centres (reference scene units). A meta-image is
 *accurate* (MTA) when ΔR < 5° and ΔT < 0.2, an *outlier* (O%) when ΔR > 10° or ΔT > 0.5.
 """
@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sg_nerfstudio.registration.sim3 import decompose, rotation_angle_deg
+from sg_nerfstudio.geometry.frames import camera_to_world
+from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 
 Array = np.ndarray
 ACCURATE = (5.0, 0.2)
@@ -43,21 +44,17 @@ class PoseErrors:
         }
 
 
-def pose_errors(cam_from_meta: list[Array], transform: Array, ground_truth: Array) -> PoseErrors:
-    """Errors of `transform` against `ground_truth` (both [4, 4] meta -> reference) over the photos.
+def pose_errors(cam_from_meta: list[Array], transform: Sim3, ground_truth: Sim3) -> PoseErrors:
+    """Errors of `transform` against `ground_truth` (both meta -> reference world) over the photos.
 
     Args:
-        cam_from_meta: [3, 4] world-to-camera matrices of the photos in the meta frame.
+        cam_from_meta: [3, 4] world-to-camera matrices (OpenCV) of the photos in the meta frame.
     """
-    _, rotation, _ = decompose(transform)
-    _, rotation_gt, _ = decompose(ground_truth)
     angles, distances = [], []
     for pose in cam_from_meta:
-        centre = np.append(-pose[:, :3].T @ pose[:, 3], 1.0)
-        world_from_cam = pose[:, :3].T
-        estimated, truth = rotation @ world_from_cam, rotation_gt @ world_from_cam
-        angles.append(rotation_angle_deg(estimated.T @ truth))
-        distances.append(float(np.linalg.norm((transform @ centre)[:3] - (ground_truth @ centre)[:3])))
+        estimated, truth = transform.move_camera(pose), ground_truth.move_camera(pose)
+        angles.append(rotation_angle_deg(estimated[:, :3] @ truth[:, :3].T))
+        distances.append(float(np.linalg.norm(camera_to_world(estimated)[:, 3] - camera_to_world(truth)[:, 3])))
     return PoseErrors(
         rotation_deg=float(np.sqrt(np.mean(np.square(angles)))),
         translation=float(np.sqrt(np.mean(np.square(distances)))),

@@ -25,26 +25,16 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from sg_nerfstudio.atomic import atomic_directory  # noqa: E402
-from sg_nerfstudio.registration.meta_image import MetaImage  # noqa: E402
+from sg_nerfstudio.geometry.frames import viewmat  # noqa: E402
+from sg_nerfstudio.geometry.meta_image import MetaImage  # noqa: E402
+from sg_nerfstudio.geometry.sim3 import Sim3  # noqa: E402
 from sg_nerfstudio.registration.merge import aligned_reconstruction  # noqa: E402
 from sg_nerfstudio.registration.metrics import PoseErrors  # noqa: E402
-from sg_nerfstudio.registration.optimize import RegistrationResult, camera_viewmat  # noqa: E402
+from sg_nerfstudio.registration.optimize import RegistrationResult  # noqa: E402
 from sg_nerfstudio.registration.reference import ReferenceModel  # noqa: E402
-from sg_nerfstudio.registration.sim3 import decompose, quaternion_wxyz  # noqa: E402
 
 Array = np.ndarray
 COMPARISON_LONG_SIDE = 320
-
-
-def transform_record(matrix: Array) -> dict:
-    scale, rotation, translation = decompose(matrix)
-    return {
-        "convention": "x_reference = scale * R @ x_meta + translation",
-        "matrix": np.asarray(matrix).tolist(),
-        "scale": scale,
-        "rotation_wxyz": quaternion_wxyz(rotation),
-        "translation": translation.tolist(),
-    }
 
 
 def write_outputs(
@@ -71,9 +61,9 @@ def write_outputs(
 
 
 def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage, result: RegistrationResult) -> None:
-    record = transform_record(result.transform)
+    record = result.transform.as_record()
     record.update({
-        "initial": transform_record(result.initial_transform),
+        "initial": result.initial_transform.as_record(),
         "meta_image": str(meta.directory),
         "reference_config": str(reference.config_path),
         "reference_checkpoint": str(reference.checkpoint_path),
@@ -91,7 +81,7 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
     (directory / "transform.json").write_text(json.dumps(record, indent=2))
 
 
-def _write_aligned_model(directory: Path, meta: MetaImage, transform: Array) -> None:
+def _write_aligned_model(directory: Path, meta: MetaImage, transform: Sim3) -> None:
     directory.mkdir()
     aligned_reconstruction(meta.reconstruction, transform).write_binary(str(directory))
 
@@ -130,13 +120,12 @@ def _plot_ignored(path: Path, result: RegistrationResult) -> None:
     plt.close(figure)
 
 
-def render_rgb_at_photo(reference: ReferenceModel, cam_from_meta: Array, K: Array, width: int, height: int, transform_world: Array, near_plane: float) -> Array:
-    """[H, W, 3] uint8 colour render of the reference model from a meta camera moved by `transform_world`."""
-    matrix = torch.from_numpy(reference.world_to_dataparser @ transform_world)
-    scale = torch.tensor(decompose(matrix.numpy())[0], dtype=torch.float64)
-    viewmat = camera_viewmat(torch.from_numpy(cam_from_meta), matrix[:3, :3], matrix[:3, 3], scale)
+def render_rgb_at_photo(reference: ReferenceModel, cam_from_meta: Array, K: Array, width: int, height: int, meta_to_world: Sim3, near_plane: float) -> Array:
+    """[H, W, 3] uint8 colour render of the reference model from a meta camera moved by `meta_to_world`."""
+    meta_to_dataparser = (reference.world_to_dataparser @ meta_to_world).to_torch()
+    camera = viewmat(meta_to_dataparser.move_camera(torch.from_numpy(cam_from_meta))).float()
     with torch.no_grad():
-        rgb, _ = reference.render(viewmat[None], torch.from_numpy(K).float()[None], width, height, near_plane, "photometric")
+        rgb, _ = reference.render_rgb(camera[None], torch.from_numpy(K).float()[None], width, height, near_plane)
     return (rgb[0].numpy() * 255 + 0.5).astype(np.uint8)
 
 
@@ -148,13 +137,8 @@ def _write_comparisons(directory: Path, reference: ReferenceModel, meta: MetaIma
     chosen = list(dict.fromkeys([*order[: count // 2], *order[::-1][: count - count // 2]]))
     for index in chosen:
         photo = meta.photos[int(index)]
-        image = photo.load_undistorted()
-        factor = COMPARISON_LONG_SIDE / max(image.shape[:2])
-        width, height = round(image.shape[1] * factor), round(image.shape[0] * factor)
-        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-        K = photo.pinhole_intrinsics()
-        K[0] *= width / photo.camera.width
-        K[1] *= height / photo.camera.height
+        image, K = photo.load_resized(COMPARISON_LONG_SIDE)
+        height, width = image.shape[:2]
         panels = []
         for transform in (result.initial_transform, result.transform):
             render = render_rgb_at_photo(reference, photo.cam_from_world, K, width, height, transform, result.near_plane)

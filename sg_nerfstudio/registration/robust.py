@@ -8,14 +8,11 @@ held fixed within a step (iteratively reweighted least squares). `none`: the pla
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
 import torch
 from torch import Tensor
 
-Robust = Literal["lts", "fixed-lts", "irls", "none"]
-LossKind = Literal["l1", "l2"]
+from sg_nerfstudio.registration.settings import LossKind, Robust
 
 
 def per_image_loss(rendered: Tensor, target: Tensor, kind: LossKind) -> Tensor:

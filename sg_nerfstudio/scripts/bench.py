@@ -24,14 +24,13 @@ import torch
 import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.text import Text
 
 from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
-from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.registration.meta_image import load_meta_image
-from sg_nerfstudio.scripts.register_meta import load_settings_preset
+from sg_nerfstudio.geometry.meta_image import load_meta_image
+from sg_nerfstudio.registration.settings import load_preset
+from sg_nerfstudio.scripts.cli import cli_main
 
 Start = Literal["colmap", "generalized", "perturbed"]
 Ablation = Literal[tuple(ABLATIONS)]  # type: ignore[valid-type]
@@ -45,8 +44,8 @@ class BenchArgs:
     """Benchmark directory (e.g. from `sg-make-scene --preset benchmark`)."""
     output: Path
     """Results, trained references and per-run records; reused when the command is run again."""
-    preset: Path = Path("configs/register/fast-cpu.yaml")
-    """Registration settings preset."""
+    config: str = "fast-cpu"
+    """Registration preset: a name (paper, fast-cpu, fast-cpu-features) or a YAML file."""
     train_steps: int = 1500
     """Training steps of each reference model (CPU, offline teacher); 1500 trains each reference of the default
     suite in under 2 minutes on a 2-core CPU (93-107 s measured; the demo and the feature benchmark train 3000)."""
@@ -70,7 +69,7 @@ def run(args: BenchArgs, console: Console) -> Path:
     torch.set_num_threads(args.threads)
     scenes = read_benchmark(args.benchmark)
     options = BenchOptions(
-        settings=load_settings_preset(args.preset), train_steps=args.train_steps, initialisers=args.initialisers,
+        settings=load_preset(args.config), train_steps=args.train_steps, initialisers=args.initialisers,
         ablations=args.ablations, noise_levels=args.noise_levels, sizes=args.sizes, size_samples=args.size_samples, seed=args.seed,
     )
     args.output.mkdir(parents=True, exist_ok=True)
@@ -94,7 +93,7 @@ def run(args: BenchArgs, console: Console) -> Path:
     records = read_records(args.output)
     compute = sum(train_seconds.values()) + sum(r["init_time_s"] + r["refine_time_s"] for r in records)
     header = [
-        f"Benchmark {args.benchmark} ({len(scenes)} scenes, {sum(len(s.metas) for s in scenes)} meta-images), preset {args.preset}, "
+        f"Benchmark {args.benchmark} ({len(scenes)} scenes, {sum(len(s.metas) for s in scenes)} meta-images), preset {args.config}, "
         f"references trained {args.train_steps} steps on CPU with the offline teacher.",
         f"Wall time of this invocation: {time.perf_counter() - started:.0f} s; total compute over all invocations "
         f"(training + initialisation + registration): {compute:.0f} s.",
@@ -115,13 +114,13 @@ def describe(record: dict) -> str:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    console = Console()
-    try:
-        run(tyro.cli(BenchArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-bench"), console)
-    except InputError as error:
-        Console(stderr=True).print(Text(str(error), style="red"), soft_wrap=True)
-        return 1
-    return 0
+    args = tyro.cli(BenchArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-bench")
+
+    def body() -> int:
+        run(args, Console())
+        return 0
+
+    return cli_main(body)
 
 
 def entrypoint() -> None:

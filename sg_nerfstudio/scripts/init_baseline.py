@@ -33,12 +33,11 @@ from rich.table import Table
 from rich.text import Text
 
 from sg_nerfstudio.atomic import atomic_directory
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, InitResult, resolve_reference_source, rich_progress
-from sg_nerfstudio.registration.meta_image import load_meta_image
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
-from sg_nerfstudio.registration.outputs import transform_record
-from sg_nerfstudio.scripts.register_meta import ArgumentError, per_meta_values, read_transform_json
+from sg_nerfstudio.registration.session import ArgumentError, read_ground_truths
+from sg_nerfstudio.scripts.cli import cli_main
 
 
 @dataclass
@@ -73,7 +72,7 @@ def run(args: InitBaselineArgs, console: Console) -> list[dict]:
     names = [meta.name for meta in metas]
     if len(set(names)) != len(names):
         raise ArgumentError(f"Meta-image directories must have distinct names (outputs go to <output-dir>/<name>), got {names}.")
-    gts = [read_transform_json(p, "Ground truth") for p in per_meta_values(args.gt, len(metas), "--gt", allow_single=False)] if args.gt else [None] * len(metas)
+    gts = read_ground_truths(args.gt, len(metas))
     initialiser = Initialiser(source, args.initialiser)
     initialiser.check_reference()
 
@@ -84,7 +83,7 @@ def run(args: InitBaselineArgs, console: Console) -> list[dict]:
             outcome = initialiser(meta, args.init)
             errors = None
             if outcome.succeeded and gt is not None:
-                errors = pose_errors([p.cam_from_world for p in meta.photos], outcome.transform, gt)
+                errors = pose_errors(meta.poses, outcome.transform, gt)
             entries.append({"meta": meta, "outcome": outcome, "errors": errors})
     write_outputs(args.output_dir, args, entries)
     print_table(entries, args.init, console)
@@ -100,7 +99,7 @@ def write_outputs(target: Path, args: InitBaselineArgs, entries: list[dict]) -> 
             outcome: InitResult = entry["outcome"]
             if not outcome.succeeded:
                 continue
-            record = transform_record(outcome.transform) | {"meta_image": str(entry["meta"].directory), "initialiser": outcome.as_record()}
+            record = outcome.transform.as_record() | {"meta_image": str(entry["meta"].directory), "initialiser": outcome.as_record()}
             (staging / entry["meta"].name).mkdir()
             (staging / entry["meta"].name / "init_transform.json").write_text(json.dumps(record, indent=2))
         summary = {
@@ -135,15 +134,16 @@ def print_table(entries: list[dict], method: str, console: Console) -> None:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    console = Console()
-    try:
-        args = tyro.cli(InitBaselineArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-init-baseline")
+    argv = list(sys.argv[1:] if argv is None else argv)
+
+    def body() -> int:
+        console = Console()
+        args = tyro.cli(InitBaselineArgs, args=argv, prog="sg-init-baseline")
         entries = run(args, console)
-    except InputError as error:
-        Console(stderr=True).print(Text(str(error), style="red"), soft_wrap=True)
-        return 1
-    console.print(f"Initial transforms and metrics.json in {args.output_dir}", soft_wrap=True)
-    return 0 if any(e["outcome"].succeeded for e in entries) else 1
+        console.print(f"Initial transforms and metrics.json in {args.output_dir}", soft_wrap=True)
+        return 0 if any(e["outcome"].succeeded for e in entries) else 1
+
+    return cli_main(body)
 
 
 def entrypoint() -> None:

@@ -25,6 +25,7 @@ from rich.text import Text
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio.atomic import atomic_directory
+from sg_nerfstudio.scripts.cli import cli_main
 from sg_nerfstudio.synthetic import PRESETS, SceneConfig, SceneGenerationError, generate_scene
 from sg_nerfstudio.synthetic.generator import SUITES
 
@@ -52,19 +53,14 @@ class SuiteArgs:
 def make_suite(name: str, args: SuiteArgs, console: Console) -> int:
     """Write every scene of the suite `name` into args.output, atomically as a whole."""
     if args.output.exists() and not args.overwrite:
-        console.print(Text(f"Output directory {args.output} already exists; pass --overwrite to replace it.", style="red"), soft_wrap=True)
-        return 1
+        raise SceneGenerationError(f"Output directory {args.output} already exists; pass --overwrite to replace it.")
     manifest = {"suite": name, "scenes": []}
-    try:
-        with atomic_directory(args.output, overwrite=args.overwrite) as staging, scene_progress(console) as progress:
-            for scene_name, config in SUITES[name].items():
-                scene = generate_scene(config, staging / scene_name, progress=progress)
-                manifest["scenes"].append({"name": scene_name, "meta_images": [m["name"] for m in scene["meta_images"]]})
-                console.print(f"{scene_name}: " + ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in scene["meta_images"]))
-            (staging / "benchmark.json").write_text(json.dumps(manifest, indent=2))
-    except SceneGenerationError as error:
-        console.print(Text(str(error), style="red"), soft_wrap=True)
-        return 1
+    with atomic_directory(args.output, overwrite=args.overwrite) as staging, scene_progress(console) as progress:
+        for scene_name, config in SUITES[name].items():
+            scene = generate_scene(config, staging / scene_name, progress=progress)
+            manifest["scenes"].append({"name": scene_name, "meta_images": [m["name"] for m in scene["meta_images"]]})
+            console.print(f"{scene_name}: " + ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in scene["meta_images"]))
+        (staging / "benchmark.json").write_text(json.dumps(manifest, indent=2))
     console.print(f"Wrote the '{name}' suite of {len(manifest['scenes'])} scenes to {args.output}.")
     return 0
 
@@ -80,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     known, rest = pre.parse_known_args(argv)
     console = Console(stderr=True)
     if known.preset in SUITES:
-        return make_suite(known.preset, tyro.cli(SuiteArgs, args=rest, prog=f"sg-make-scene --preset {known.preset}"), console)
+        suite_args = tyro.cli(SuiteArgs, args=rest, prog=f"sg-make-scene --preset {known.preset}")
+        return cli_main(lambda: make_suite(known.preset, suite_args, console))
     if known.preset not in PRESETS:
         names = ", ".join([*PRESETS, *SUITES])
         console.print(Text(f"Unknown --preset {known.preset!r}; expected one of: {names}.", style="red"), soft_wrap=True)
@@ -92,12 +89,12 @@ def main(argv: list[str] | None = None) -> int:
         prog=f"sg-make-scene --preset {known.preset}",
         config=(tyro.conf.OmitArgPrefixes,),
     )
-    try:
-        with scene_progress(console) as progress:
-            manifest = generate_scene(args.scene, args.output, overwrite=args.overwrite, progress=progress)
-    except SceneGenerationError as error:
-        console.print(Text(str(error), style="red"), soft_wrap=True)
-        return 1
+    return cli_main(lambda: make_scene(args, console))
+
+
+def make_scene(args: MakeSceneArgs, console: Console) -> int:
+    with scene_progress(console) as progress:
+        manifest = generate_scene(args.scene, args.output, overwrite=args.overwrite, progress=progress)
     metas = ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in manifest["meta_images"])
     console.print(
         f"Wrote {args.output}: reference capture of {manifest['reference']['n_images']} views, "

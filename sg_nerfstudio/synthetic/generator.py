@@ -28,6 +28,7 @@ import pycolmap
 from rich.progress import Progress
 
 from sg_nerfstudio.atomic import atomic_directory
+from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.synthetic.appearance import (
     apply_camera_effects, draw_occluders, flat_lighting, random_look, sun_lighting,
 )
@@ -125,7 +126,7 @@ SUITES: dict[str, dict[str, SceneConfig]] = {
 """Benchmark suites: several scenes written side by side (the layout `sg-bench` reads)."""
 
 
-class SceneGenerationError(RuntimeError):
+class SceneGenerationError(InputError):
     """A scene cannot be generated from the given settings."""
 
 

@@ -1,6 +1,6 @@
 """Train sg-feature-splat on the synthetic reference capture on CPU and report held-out quality.
 
-    python -m sg_nerfstudio.benchmarks.feature_splat [--scene DIR] [--steps 4000] [--output DIR]
+    python -m sg_nerfstudio.bench.feature_splat [--scene DIR] [--steps 4000] [--output DIR]
 
 Builds the default synthetic scene when `--scene` is not given, trains with the offline teacher on the
 CPU, then evaluates every held-out reference view (nerfstudio's colmap eval split: every 8th image):
@@ -25,7 +25,7 @@ from rich.table import Table
 
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.synthetic import PRESETS, generate_scene
-from sg_nerfstudio.training import cpu_config, save, train
+from sg_nerfstudio.splat.training import cpu_config, save, train
 
 
 @dataclass

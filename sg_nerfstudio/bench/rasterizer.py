@@ -1,6 +1,6 @@
 """Speed of the CPU rasterizer: forward and forward+backward milliseconds per camera.
 
-    python -m sg_nerfstudio.benchmarks.rasterizer [--repeats 5] [--threads 2]
+    python -m sg_nerfstudio.bench.rasterizer [--repeats 5] [--threads 2]
 
 Scenes are the synthetic landmark (surface Gaussians like a trained splat) seen from a reference-ring
 camera, with 131 channels (3 RGB + 128 features) of random colour. Cases:

@@ -17,6 +17,7 @@ import pycolmap
 from PIL import Image as PILImage
 
 from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.geometry.sim3 import Sim3
 
 Array = np.ndarray
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp"}
@@ -53,6 +54,22 @@ class Photo:
         fx, fy, cx, cy = _focal_and_centre(self.camera)
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
+    def intrinsics_at(self, width: int, height: int) -> Array:
+        """[3, 3] K of the undistorted image resized to width x height pixels."""
+        K = self.pinhole_intrinsics()
+        K[0] *= width / self.camera.width
+        K[1] *= height / self.camera.height
+        return K
+
+    def load_resized(self, long_side: int) -> tuple[Array, Array]:
+        """The undistorted photo area-resized to `long_side` pixels on its long side, and its K:
+        ([h, w, 3] uint8 RGB, [3, 3])."""
+        image = self.load_undistorted()
+        factor = long_side / max(image.shape[:2])
+        width, height = max(1, round(image.shape[1] * factor)), max(1, round(image.shape[0] * factor))
+        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+        return image, self.intrinsics_at(width, height)
+
     def load_undistorted(self) -> Array:
         """[H, W, 3] uint8 RGB, undistorted to `pinhole_intrinsics()`; raises MetaImageError if unreadable."""
         bgr = cv2.imread(str(self.path), cv2.IMREAD_COLOR)
@@ -86,9 +103,14 @@ class MetaImage:
         """[P, 3] camera centres in the meta frame."""
         return np.stack([p.centre for p in self.photos])
 
-    def centroid_under(self, transform: Array) -> Array:
-        """[3] centroid of the camera centres moved by the Sim(3) `transform` [4, 4]."""
-        return self.centres.mean(0) @ transform[:3, :3].T + transform[:3, 3]
+    @property
+    def poses(self) -> list[Array]:
+        """[3, 4] world-to-camera (OpenCV) of every photo, meta frame."""
+        return [p.cam_from_world for p in self.photos]
+
+    def centroid_under(self, transform: Sim3) -> Array:
+        """[3] centroid of the camera centres moved by `transform`."""
+        return transform.apply(self.centres.mean(0))
 
 
 def _focal_and_centre(camera: pycolmap.Camera) -> tuple[float, float, float, float]:

@@ -14,7 +14,7 @@ from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 
 from sg_nerfstudio.features import TeacherConfig
-from sg_nerfstudio.method import sg_feature_splat_config
+from sg_nerfstudio.splat.method import sg_feature_splat_config
 
 
 def cpu_config(data: Path, output: Path, steps: int, teacher: TeacherConfig, experiment_name: Optional[str] = None) -> TrainerConfig:

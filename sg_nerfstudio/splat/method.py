@@ -6,15 +6,17 @@
 
 splatfacto's optimisers, plus the supplement's: per-Gaussian features Adam lr 0.05 -> 1.6e-6
 (exponential decay, eps 1e-15) and the speedup decoder Adam lr 1e-3 (eps 1e-15); 12000 steps.
+An InputError raised while nerfstudio trains (e.g. missing images) ends `ns-train` with its sentence.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import Type
+
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
-from dataclasses import dataclass, field
-from typing import Type
 
 from nerfstudio.engine.schedulers import ExponentialDecayScheduler
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig as _NerfstudioExponentialDecayConfig
@@ -22,10 +24,12 @@ from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from sg_nerfstudio.datamanager import FeatureDatamanagerConfig
-from sg_nerfstudio.model import FeatureSplatfactoModelConfig
+from sg_nerfstudio.errors import install_input_error_hook
+from sg_nerfstudio.splat.datamanager import FeatureDatamanagerConfig
+from sg_nerfstudio.splat.model import FeatureSplatfactoModelConfig
 
 MAX_STEPS = 12000
+install_input_error_hook()
 
 
 class ExponentialDecayScheduler_(ExponentialDecayScheduler):

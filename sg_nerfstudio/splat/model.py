@@ -40,7 +40,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from pytorch_msssim import SSIM
 
 from sg_nerfstudio.features.base import resize_bilinear
-from sg_nerfstudio.frames import viewmats_from_camera_to_worlds
+from sg_nerfstudio.geometry.frames import viewmats_from_camera_to_worlds
 from sg_nerfstudio.render import rasterize, resolve_backend
 from sg_nerfstudio.render.spherical_harmonics import evaluate_sh
 

@@ -1,10 +1,10 @@
 """Registration accuracy, robustness ablations and speed on synthetic scenes (CPU, offline teacher).
 
-    python -m sg_nerfstudio.benchmarks.registration --load-config <sg-feature-splat config.yml> \\
+    python -m sg_nerfstudio.bench.registration --load-config <sg-feature-splat config.yml> \\
         --scene <sg-make-scene dir the model was trained on> [--trials 20] [--ablation-trials 4]
 
 The reference model must have been trained on `<scene>/reference` (e.g. by
-`python -m sg_nerfstudio.benchmarks.feature_splat`). Variants of the scene with the same seed share the
+`python -m sg_nerfstudio.bench.feature_splat`). Variants of the scene with the same seed share the
 reference capture exactly (the generator draws the reference first), so the benchmark builds them next to
 it without retraining:
 
@@ -32,18 +32,18 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-from sg_nerfstudio.bench.runs import ABLATIONS
-from sg_nerfstudio.registration.meta_image import MetaImage, load_meta_image
+from sg_nerfstudio.bench.runs import ABLATIONS, PERTURBED_START
+from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
+from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.registration.metrics import pose_errors
-from sg_nerfstudio.registration.optimize import RegistrationSettings, prepare_photos, register
+from sg_nerfstudio.registration.objectives import prepare_photos
+from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
-from sg_nerfstudio.registration.sim3 import about_point, perturbation
-from sg_nerfstudio.scripts.register_meta import load_settings_preset
+from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
 from sg_nerfstudio.synthetic import generate_scene
 from sg_nerfstudio.synthetic.generator import read_scene_config
 
-
-ACCURACY_START = (5.0, 0.1, 0.1)
+ACCURACY_START = PERTURBED_START
 """Start noise of the accuracy trials: 5° rotation, 0.1 scene units translation, 10% scale."""
 
 
@@ -52,7 +52,8 @@ class Args:
     load_config: Path
     scene: Path
     """The sg-make-scene directory whose reference capture the model was trained on."""
-    preset: Path = Path("configs/register/fast-cpu.yaml")
+    config: str = "fast-cpu"
+    """Registration preset: a name (paper, fast-cpu, fast-cpu-features) or a YAML file."""
     trials: int = 20
     ablation_trials: int = 4
     """Starts per meta-image and ablation row."""
@@ -76,13 +77,12 @@ def scene_variant(scene: Path, name: str, **changes) -> Path:
 
 
 def trial(
-    reference: ReferenceModel, meta: MetaImage, truth: np.ndarray, seed: int, settings: RegistrationSettings,
+    reference: ReferenceModel, meta: MetaImage, truth: Sim3, seed: int, settings: RegistrationSettings,
     photos=None, start_noise: tuple[float, float, float] = ACCURACY_START,
 ) -> dict:
-    noise = perturbation(np.random.default_rng(seed), *start_noise)
-    start = about_point(noise, meta.centroid_under(truth)) @ truth
+    start = perturbed(truth, meta.centres, np.random.default_rng(seed), *start_noise)
     result = register(reference, meta, start, replace(settings, seed=seed), photos=photos)
-    poses = [p.cam_from_world for p in meta.photos]
+    poses = meta.poses
     before, after = pose_errors(poses, start, truth), pose_errors(poses, result.transform, truth)
     return {
         "meta": meta.name, "seed": seed, "dR_before": before.rotation_deg, "dT_before": before.translation,
@@ -91,12 +91,11 @@ def trial(
     }
 
 
-def load_metas(scene: Path) -> list[tuple[MetaImage, np.ndarray]]:
-    metas = []
-    for directory in sorted((scene / "meta").iterdir()):
-        truth = np.array(json.loads((directory / "gt_transform.json").read_text())["matrix"])
-        metas.append((load_meta_image(directory), truth))
-    return metas
+def load_metas(scene: Path) -> list[tuple[MetaImage, Sim3]]:
+    return [
+        (load_meta_image(directory), Sim3.read_json(directory / "gt_transform.json", "Ground truth"))
+        for directory in sorted((scene / "meta").iterdir())
+    ]
 
 
 def accuracy(reference, scene, settings, trials, console) -> dict:
@@ -173,7 +172,7 @@ def prune(reference: ReferenceModel, count: int) -> ReferenceModel:
     keep = torch.argsort(reference.opacities, descending=True)[:count]
     return replace(
         reference, means=reference.means[keep], covars=reference.covars[keep],
-        opacities=reference.opacities[keep], render_features=reference.render_features[keep], colors=reference.colors[keep],
+        opacities=reference.opacities[keep], gaussian_features=reference.gaussian_features[keep], colors=reference.colors[keep],
     )
 
 
@@ -183,7 +182,7 @@ def main(args: Args) -> None:
         raise SystemExit(f"Unknown ablation row(s) {', '.join(unknown)}; expected some of {', '.join(ABLATIONS)}.")
     torch.set_num_threads(args.threads)
     console = Console(width=140)
-    settings = load_settings_preset(args.preset)
+    settings = load_preset(args.config)
     reference = load_reference(args.load_config)
     console.print(f"Reference model: {reference.means.shape[0]} Gaussians from {args.load_config}")
     report = {"settings": dataclasses.asdict(settings), "gaussians": int(reference.means.shape[0])}

@@ -1,1 +1,0 @@
-"""Benchmark scripts: speed and accuracy figures, printed (not asserted)."""

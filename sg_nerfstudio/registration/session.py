@@ -1,0 +1,256 @@
+"""A registration session: several meta-images against one frozen reference, as `ns-register-meta` runs it.
+
+`RegistrationJob` says what to do (its fields are ns-register-meta's flags); `run_job` does it:
+
+1. check every input before heavy work (the trained config, each meta-image, --init / --gt files, result
+   directories), one sentence per problem;
+2. for each meta-image: its initial transform (identity, a JSON file, or an initialiser: `colmap`,
+   `generalized`), then `register()` and the outputs (`outputs.write_outputs`);
+3. print the summary table; with several meta-images, assemble `<output-dir>/merged/` (`merge.py`).
+
+An initialiser that fails for one meta-image is reported in one sentence and that meta-image gets no
+result directory; the others are still registered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal, Optional
+
+import pycolmap
+import tyro
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+from rich.text import Text
+
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
+from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress
+from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
+from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
+from sg_nerfstudio.registration.objectives import prepare_photos
+from sg_nerfstudio.registration.optimize import RegistrationResult, register
+from sg_nerfstudio.registration.outputs import write_outputs
+from sg_nerfstudio.registration.reference import load_reference
+from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.splat.trained import read_trainer_config
+
+MERGED = "merged"
+
+
+class ArgumentError(InputError):
+    """Command-line arguments that do not fit together."""
+
+
+@dataclass
+class RegistrationJob:
+    """Register meta-images (COLMAP model + photos) to a trained sg-feature-splat reference model."""
+
+    load_config: Path
+    """config.yml of the trained sg-feature-splat reference model."""
+    meta_image: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction]
+    """A meta-image directory (images/ + sparse/0 or sparse/); repeat the flag for several."""
+    output_dir: Path
+    """Results go to <output-dir>/<meta-image directory name>/."""
+    config: Optional[str] = None
+    """Registration preset: a name (paper, fast-cpu, fast-cpu-features) or a YAML file; the flags below override
+    single values. Default: the paper's settings (12000 steps; `fast-cpu` takes about a minute on CPU)."""
+    init: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
+    """Initial transform meta -> reference world: 'identity' (the default), 'colmap' (photos registered into
+    the reference COLMAP model, Sim(3) from their centres), 'generalized' (the meta-image as one
+    generalized camera, our gDLS+++ analogue), or a JSON file with a 4x4 "matrix" (transform.json /
+    gt_transform.json format); once for all meta-images or once per meta-image."""
+    reference_colmap: Optional[Path] = None
+    """For --init colmap/generalized: the reference's COLMAP model (default: the trained config's dataparser
+    data / colmap_path)."""
+    reference_images: Optional[Path] = None
+    """For --init colmap/generalized: the reference's images (default: the dataparser's data / images_path)."""
+    init_max_error: Optional[float] = None
+    """For --init colmap: RANSAC inlier distance (reference world units) of the Sim(3) from camera centres;
+    default 5% of the median distance of the reference cameras to their centroid."""
+    init_cache_dir: Optional[Path] = None
+    """Cache of SIFT features and the reference's SIFT triangulation (default: ~/.cache/sg_nerfstudio/initialisers)."""
+    gt: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction] = ()
+    """Ground-truth transform (gt_transform.json) to report ΔR / ΔT; once per meta-image, in order."""
+    settings: RegistrationSettings = field(default_factory=RegistrationSettings)
+    merge_reference: bool = False
+    """With several meta-images: also put the reference's own COLMAP cameras and points into merged/ (read
+    from --reference-colmap or the trained config's dataparser)."""
+    overwrite: bool = False
+    """Replace existing result directories."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where the reference model is loaded and rendered."""
+
+
+@dataclass
+class MetaOutcome:
+    """What became of one meta-image: its result (None when its initialisation failed), errors with --gt."""
+
+    meta: MetaImage
+    result: Optional[RegistrationResult] = None
+    errors: Optional[dict[str, PoseErrors]] = None
+    target: Optional[Path] = None
+
+
+def read_initial_transform(value: str) -> Optional[Sim3]:
+    """The transform for 'identity' or a JSON file; None for an initialiser name (computed later)."""
+    if value in METHODS:
+        return None
+    if value == "identity":
+        return Sim3.identity()
+    if not Path(value).is_file():
+        raise ArgumentError(f"Initial transform file {value} does not exist; expected 'identity', 'colmap', 'generalized' or a JSON file.")
+    return Sim3.read_json(Path(value), "Initial transform")
+
+
+def per_meta_values(values: tuple, count: int, flag: str, allow_single: bool) -> list:
+    """One value per meta-image: as given, or one given value repeated (`allow_single`)."""
+    if len(values) == count:
+        return list(values)
+    if allow_single and len(values) == 1:
+        return list(values) * count
+    expected = f"1 or {count}" if allow_single else f"0 or {count}"
+    raise ArgumentError(f"{flag} was given {len(values)} times for {count} meta-images; expected {expected}.")
+
+
+def read_ground_truths(paths: tuple[Path, ...], count: int) -> list[Optional[Sim3]]:
+    """--gt per meta-image (None for all when not given)."""
+    if not paths:
+        return [None] * count
+    return [Sim3.read_json(p, "Ground truth") for p in per_meta_values(paths, count, "--gt", allow_single=False)]
+
+
+def check_targets(job: RegistrationJob, names: list[str]) -> None:
+    """Result directories are free (or --overwrite) and no meta-image name collides with merged/ or reference/."""
+    if len(set(names)) != len(names):
+        raise ArgumentError(f"Meta-image directories must have distinct names (results go to <output-dir>/<name>), got {names}.")
+    targets = [job.output_dir / name for name in names] + ([job.output_dir / MERGED] if len(names) > 1 else [])
+    for target in targets:
+        if target.exists() and not job.overwrite:
+            raise ArgumentError(f"Result directory {target} exists; pass --overwrite to replace it.")
+    if MERGED in names and len(names) > 1:
+        raise ArgumentError(f"A meta-image may not be named '{MERGED}' when several are registered (that is where they are merged).")
+    if job.merge_reference and "reference" in names:
+        raise ArgumentError("With --merge-reference no meta-image may be named 'reference' (the reference's images are named reference/<name> in merged/).")
+
+
+def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
+    """Register every meta-image of the job, write its outputs and (for several) merged/; see the module docstring."""
+    read_trainer_config(job.load_config)  # fail fast on a wrong config, before heavy work
+    metas = [load_meta_image(path) for path in job.meta_image]
+    check_targets(job, [meta.name for meta in metas])
+    init_values = per_meta_values(job.init or ("identity",), len(metas), "--init", allow_single=True)
+    inits = [read_initial_transform(v) for v in init_values]
+    gts = read_ground_truths(job.gt, len(metas))
+    for meta in metas:
+        if meta.unlisted:
+            console.print(f"[yellow]{meta.name}: {len(meta.unlisted)} files in images/ are not in the COLMAP model and are ignored: {', '.join(meta.unlisted[:5])}[/yellow]")
+
+    reference_part = read_reference_part(job) if job.merge_reference and len(metas) > 1 else None
+    initialiser = None
+    if any(value in METHODS for value in init_values):
+        source = resolve_reference_source(job.load_config, job.reference_colmap, job.reference_images)
+        initialiser = Initialiser(source, InitialiserSettings(alignment_max_error=job.init_max_error, cache_dir=job.init_cache_dir))
+        initialiser.check_reference()
+
+    reference = load_reference(job.load_config, device=resolve_device(job.device))
+    outcomes = []
+    for meta, initial, value, gt in zip(metas, inits, init_values, gts):
+        if initial is None:
+            initial = compute_initial_transform(initialiser, meta, value, console)
+            if initial is None:
+                outcomes.append(MetaOutcome(meta))
+                continue
+        outcomes.append(register_one(job, reference, meta, initial, gt, console))
+    print_summary(outcomes, console)
+    if len(metas) > 1:
+        write_merge(job.output_dir / MERGED, outcomes, reference_part, job.overwrite, console)
+    return outcomes
+
+
+def register_one(job: RegistrationJob, reference, meta: MetaImage, initial: Sim3, gt: Optional[Sim3], console: Console) -> MetaOutcome:
+    """Register one meta-image with a progress bar and write its result directory."""
+    photos = prepare_photos(reference, meta, job.settings)
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=console, transient=True) as progress:
+        task = progress.add_task(f"Registering {meta.name}", total=job.settings.steps)
+        result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task))
+    errors = None
+    if gt is not None:
+        errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}
+    target = write_outputs(job.output_dir / meta.name, reference, meta, result, errors, overwrite=job.overwrite)
+    return MetaOutcome(meta, result, errors, target)
+
+
+def resolve_device(device: str) -> str:
+    """'auto' -> cuda when available, else cpu."""
+    if device != "auto":
+        return device
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def read_reference_part(job: RegistrationJob) -> MergePart:
+    """The reference's own COLMAP model (already in the reference world frame) for --merge-reference."""
+    colmap_path = resolve_reference_source(job.load_config, job.reference_colmap, job.reference_images).colmap_path
+    try:
+        return MergePart("reference", pycolmap.Reconstruction(str(colmap_path)))
+    except Exception as error:
+        raise ArgumentError(f"--merge-reference could not read the reference COLMAP model {colmap_path} ({type(error).__name__}); pass --reference-colmap.") from None
+
+
+def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optional[MergePart], overwrite: bool, console: Console) -> None:
+    """merged/: every registered meta-image (and optionally the reference) in one COLMAP model."""
+    parts = [reference_part] if reference_part is not None else []
+    not_merged = {}
+    for outcome in outcomes:
+        if outcome.result is None:
+            not_merged[outcome.meta.name] = "initialisation failed"
+        else:
+            transform = outcome.result.transform
+            parts.append(MergePart(outcome.meta.name, aligned_reconstruction(outcome.meta.reconstruction, transform), transform))
+    if not any(part.transform is not None for part in parts):
+        console.print(f"[yellow]No meta-image was registered, so {target} is not written.[/yellow]")
+        return
+    write_merged(target, parts, not_merged, overwrite=overwrite)
+    skipped = f"; not merged: {', '.join(not_merged)}" if not_merged else ""
+    console.print(f"Merged model of {len(parts)} reconstructions in the reference frame: {target}{skipped}", soft_wrap=True)
+
+
+def compute_initial_transform(initialiser: Initialiser, meta: MetaImage, method: str, console: Console) -> Optional[Sim3]:
+    """The initialiser's transform, or None after printing its one-sentence failure."""
+    with rich_progress(console) as progress:
+        initialiser.progress = progress
+        outcome = initialiser(meta, method)
+    if outcome.failure:
+        Console(stderr=True).print(Text(outcome.failure.rstrip(".") + "; no result is written for it.", style="red"), soft_wrap=True)
+        return None
+    console.print(f"{meta.name}: '{method}' initialisation from {len(outcome.agreeing_photos)} agreeing photos in {outcome.wall_time_s:.1f} s.")
+    return outcome.transform
+
+
+def print_summary(outcomes: list[MetaOutcome], console: Console) -> None:
+    table = Table(title="ns-register-meta")
+    for column in ("meta-image", "photos", "ΔR before (°)", "ΔT before", "ΔR after (°)", "ΔT after", "accurate", "outlier", "trimmed loss", "time (s)"):
+        table.add_column(column, justify="right")
+    for outcome in outcomes:
+        meta, result, errors = outcome.meta, outcome.result, outcome.errors
+        if result is None:
+            table.add_row(meta.name, str(len(meta.photos)), "initialisation failed", *[""] * 7)
+            continue
+        if errors:
+            before, after = errors["before"], errors["after"]
+            cells = [f"{before.rotation_deg:.2f}", f"{before.translation:.3f}", f"{after.rotation_deg:.2f}", f"{after.translation:.3f}",
+                     f"{before.accurate()} -> {after.accurate()}", f"{before.outlier()} -> {after.outlier()}"]
+        else:
+            cells = ["-"] * 6
+        table.add_row(meta.name, str(len(meta.photos)), *cells, f"{result.final_trimmed_loss:.4f}", f"{result.wall_time_s:.1f}")
+    console.print(table)
+    for outcome in outcomes:
+        if outcome.target is not None:
+            console.print(f"{outcome.meta.name}: transform, aligned model and report in {outcome.target}", soft_wrap=True)
+

@@ -1,0 +1,89 @@
+"""How one meta-image is registered (`RegistrationSettings`), and the named presets shipped with the package.
+
+Presets are YAML files in `sg_nerfstudio/registration/presets/` (installed with the package; the repository's
+`configs/register/` links to them): `paper` (the paper's settings, 12000 steps), `fast-cpu` (offline-teacher
+references on CPU) and `fast-cpu-features` (the paper's objective on CPU). Every command takes one with
+`--config NAME` or `--config path/to/preset.yaml`; flags override single values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Literal, Optional
+
+import yaml
+
+from sg_nerfstudio.errors import InputError
+
+ObjectiveKind = Literal["features", "teacher-on-render", "photometric"]
+Robust = Literal["lts", "fixed-lts", "irls", "none"]
+LossKind = Literal["l1", "l2"]
+PRESETS = ("paper", "fast-cpu", "fast-cpu-features")
+
+
+class PresetError(InputError):
+    """A registration preset that does not exist or does not hold registration settings."""
+
+
+@dataclass
+class RegistrationSettings:
+    """How one meta-image is registered (defaults: the paper's settings)."""
+
+    steps: int = 12000
+    """Optimisation steps (paper: 12000)."""
+    lr: float = 1e-3
+    """Adam learning rate on delta = (omega, nu, log s) (paper: 1e-3)."""
+    lr_final: Optional[float] = None
+    """Exponential decay of the learning rate to this value at the last step; None keeps it constant (paper)."""
+    adam_eps: float = 1e-8
+    objective: ObjectiveKind = "features"
+    """features: decoded feature field vs the photos' teacher maps (paper); teacher-on-render: the teacher
+    applied to the rendered RGB vs the same maps; photometric: colours vs the photos."""
+    loss: LossKind = "l1"
+    robust: Robust = "lts"
+    """lts (paper), fixed-lts, irls or none."""
+    lts_percentile: float = 50.0
+    """Images with a loss above this percentile of the previous iteration's losses are ignored (50 = median)."""
+    images_per_step: int = 0
+    """Photos rendered per step; 0 = all of them (paper)."""
+    teacher_input_size: Optional[int] = None
+    """Teacher input size for the photos; default: the one the reference model was trained with."""
+    render_scale: float = 2.0
+    """Long side of the renders as a multiple of the teacher grid (the paper renders at full resolution;
+    1-2 keeps CPU cost low for `features`, whose renders are resized to the grid). Never more than the
+    photo's own long side, and for teacher-on-render never more than the teacher's input size."""
+    near_plane: float = 0.7
+    """Near plane in dataparser units against floaters (paper: 0.7); lowered automatically to half the
+    nearest sparse-point depth of the meta-image so it never cuts away what the photos see."""
+    seed: int = 0
+    backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
+
+
+def read_preset_text(name_or_path: str | Path) -> tuple[str, str]:
+    """(where it was found, YAML text) of a preset name (see PRESETS) or a path; PresetError when neither exists."""
+    if str(name_or_path) in PRESETS:
+        resource = resources.files("sg_nerfstudio.registration") / "presets" / f"{name_or_path}.yaml"
+        return f"'{name_or_path}' ({resource})", resource.read_text()
+    path = Path(name_or_path)
+    if not path.is_file():
+        raise PresetError(f"Registration preset {name_or_path} is neither a preset name ({', '.join(PRESETS)}) nor an existing YAML file.")
+    return str(path), path.read_text()
+
+
+def load_preset(name_or_path: str | Path) -> RegistrationSettings:
+    """The settings of a preset name or YAML file; unknown keys are refused."""
+    where, text = read_preset_text(name_or_path)
+    try:
+        values = yaml.safe_load(text) or {}
+    except yaml.YAMLError as error:
+        raise PresetError(f"Registration preset {where} is not readable YAML ({type(error).__name__}).") from None
+    if not isinstance(values, dict):
+        raise PresetError(f"Registration preset {where} is not a mapping of setting names to values.")
+    known = {f.name for f in dataclasses.fields(RegistrationSettings)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise PresetError(f"Registration preset {where} has unknown keys {unknown}; expected some of {sorted(known)}.")
+    return RegistrationSettings(**values)

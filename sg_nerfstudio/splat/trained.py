@@ -1,0 +1,95 @@
+"""A trained sg-feature-splat on disk: its config.yml, checkpoint and dataparser frame, checked.
+
+    <run>/config.yml                    nerfstudio's TrainerConfig (ours: an sg-feature-splat model)
+    <run>/dataparser_transforms.json    reference world -> dataparser frame, x_ns = s (A x + b)
+    <run>/nerfstudio_models/step-*.ckpt
+
+Registration, the initialisers and the viewer read trained models only through here, so a wrong
+`--load-config` gives the same sentence in every command.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.geometry.sim3 import Sim3
+
+
+class ReferenceModelError(InputError):
+    """A --load-config that does not give a usable sg-feature-splat model."""
+
+
+@dataclass
+class TrainedRun:
+    """The checked files of a trained sg-feature-splat.
+
+    Attributes:
+        config: nerfstudio TrainerConfig read from config.yml.
+        config_path: that config.yml.
+        checkpoints: step-*.ckpt files, sorted.
+        world_to_dataparser: reference world -> nerfstudio's dataparser frame.
+    """
+
+    config: object
+    config_path: Path
+    checkpoints: list[Path]
+    world_to_dataparser: Sim3
+
+
+def read_trainer_config(config_path: Path):
+    """The TrainerConfig of an sg-feature-splat model at `config_path` (ReferenceModelError otherwise)."""
+    config_path = Path(config_path)
+    if not config_path.is_file():
+        raise ReferenceModelError(f"Config {config_path} does not exist; expected the config.yml of a trained sg-feature-splat.")
+    try:
+        config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    except Exception as error:
+        raise ReferenceModelError(f"Config {config_path} is not a readable nerfstudio config ({type(error).__name__}).") from None
+    from nerfstudio.engine.trainer import TrainerConfig
+
+    from sg_nerfstudio.splat.model import FeatureSplatfactoModelConfig
+
+    if not isinstance(config, TrainerConfig):
+        raise ReferenceModelError(f"Config {config_path} is not a nerfstudio training config.")
+    if not isinstance(config.pipeline.model, FeatureSplatfactoModelConfig):
+        raise ReferenceModelError(
+            f"Config {config_path} is a '{config.method_name}' model; expected an sg-feature-splat model "
+            "(train one with `ns-train sg-feature-splat`)."
+        )
+    return config
+
+
+def read_world_to_dataparser(config_path: Path) -> Sim3:
+    """Reference world -> dataparser frame, x_ns = s (A x + b), from dataparser_transforms.json beside the config."""
+    path = Path(config_path).parent / "dataparser_transforms.json"
+    if not path.is_file():
+        raise ReferenceModelError(f"{path} is missing; it is written by ns-train next to config.yml.")
+    record = json.loads(path.read_text())
+    matrix = np.eye(4)
+    matrix[:3, :4] = float(record["scale"]) * np.asarray(record["transform"], dtype=np.float64)
+    return Sim3(matrix)
+
+
+def open_trained_run(config_path: Path) -> TrainedRun:
+    """Check everything nerfstudio needs to rebuild the model (config, dataset, frame, checkpoint)."""
+    config_path = Path(config_path)
+    config = read_trainer_config(config_path)
+    world_to_dataparser = read_world_to_dataparser(config_path)
+    data = Path(config.pipeline.datamanager.data or config.pipeline.datamanager.dataparser.data)
+    if not data.exists():
+        raise ReferenceModelError(
+            f"The reference dataset {data} named in {config_path} was not found (nerfstudio needs it to rebuild the "
+            "model); run from the directory you trained in or fix `data:` in the config."
+        )
+    model_dir = config_path.parent / config.relative_model_dir
+    checkpoints = sorted(model_dir.glob("step-*.ckpt")) if model_dir.is_dir() else []
+    if not checkpoints:
+        raise ReferenceModelError(f"No checkpoint (step-*.ckpt) in {model_dir}.")
+    config.load_dir = model_dir
+    return TrainedRun(config, config_path, checkpoints, world_to_dataparser)

@@ -6,6 +6,9 @@
 
 splatfacto's optimisers, plus the supplement's: per-Gaussian features Adam lr 0.05 -> 1.6e-6
 (exponential decay, eps 1e-15) and the speedup decoder Adam lr 1e-3 (eps 1e-15); 12000 steps.
+
+Learning-rate schedules are written for the paper's 12000 steps and follow the run's own length: a run of
+`--max-num-iterations N` decays (and warms up) over N steps, not over 12000 (`scale_schedules`).
 An InputError raised while nerfstudio trains (e.g. missing images) ends `ns-train` with its sentence.
 """
 
@@ -52,6 +55,31 @@ class ExponentialDecayScheduler_(ExponentialDecayScheduler):
 @dataclass
 class ExponentialDecaySchedulerConfig(_NerfstudioExponentialDecayConfig):
     _target: Type = field(default_factory=lambda: ExponentialDecayScheduler_)
+    schedule_length: int = MAX_STEPS
+    """The run length that `warmup_steps` and `max_steps` are written for; both are rescaled to the run's own
+    max_num_iterations when training starts."""
+
+
+@dataclass
+class FeatureSplatTrainerConfig(TrainerConfig):
+    """nerfstudio's TrainerConfig whose learning-rate schedules follow the run's max_num_iterations."""
+
+    def setup(self, **kwargs):
+        scale_schedules(self)
+        return super().setup(**kwargs)
+
+
+def scale_schedules(config: TrainerConfig) -> TrainerConfig:
+    """Rescale (in place) every schedule's warmup and decay length to `config.max_num_iterations`."""
+    steps = config.max_num_iterations
+    for entry in config.optimizers.values():
+        scheduler = entry.get("scheduler")
+        if isinstance(scheduler, ExponentialDecaySchedulerConfig) and scheduler.schedule_length != steps:
+            factor = steps / scheduler.schedule_length
+            scheduler.max_steps = max(1, round(scheduler.max_steps * factor))
+            scheduler.warmup_steps = min(round(scheduler.warmup_steps * factor), scheduler.max_steps - 1)
+            scheduler.schedule_length = steps
+    return config
 
 
 def _adam(lr: float, lr_final: float | None = None, **scheduler) -> dict:
@@ -61,7 +89,7 @@ def _adam(lr: float, lr_final: float | None = None, **scheduler) -> dict:
     }
 
 
-sg_feature_splat_config = TrainerConfig(
+sg_feature_splat_config = FeatureSplatTrainerConfig(
     method_name="sg-feature-splat",
     steps_per_eval_image=100,
     steps_per_eval_batch=0,

@@ -29,7 +29,8 @@ def test_models_load_with_pycolmap_and_images_exist(tiny_scene):
     meta = load(tiny_scene / "meta" / "front" / "sparse" / "0")
     assert meta.num_images() == 5 and meta.num_cameras() == 5  # one camera per photo
     sizes = {(c.width, c.height) for c in meta.cameras.values()}
-    assert len(sizes) >= 1
+    assert len(sizes) > 1  # photos get their own sizes (and orientations) around the base size
+    assert any(height > width for width, height in sizes)
     for image in meta.images.values():
         photo = tiny_scene / "meta" / "front" / "images" / image.name
         import cv2

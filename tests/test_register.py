@@ -162,6 +162,31 @@ def test_batched_rendering_gives_the_per_photo_losses(reference, meta, ground_tr
     torch.testing.assert_close(coverage_together, coverage_alone, rtol=1e-5, atol=1e-6)
 
 
+def test_culling_to_the_visible_gaussians_gives_the_same_losses_and_recull_follows_the_pose(reference, meta, ground_truth):
+    """The culled model renders what the whole model renders, at the cull pose and within the re-cull bounds;
+    a pose beyond them is culled again."""
+    settings = RegistrationSettings(**FAST, objective="teacher-on-render")
+    objective = build_objective(reference, settings)
+    photos = prepare_photos(reference, meta, settings, objective)
+    culled = PhotoLosses(reference, photos, objective, settings, 0.01)
+    whole = PhotoLosses(reference, photos, objective, settings, 0.01, cull=False)
+    indices = list(range(len(photos)))
+    start = perturbed_start(meta, ground_truth, 11, 2.0, 0.02, 0.02)
+    nearby = perturbed(start, meta.centres, np.random.default_rng(12), 1.0, 0.0, 0.0)  # 1 degree from the cull pose
+    for transform, culls in ((start, 1), (nearby, 1)):
+        with torch.no_grad():
+            ours, ours_coverage = culled((reference.world_to_dataparser @ transform).to_torch(), indices)
+            full, full_coverage = whole((reference.world_to_dataparser @ transform).to_torch(), indices)
+        torch.testing.assert_close(torch.stack(ours), torch.stack(full), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(ours_coverage, full_coverage, rtol=1e-5, atol=1e-6)
+        assert culled.visible.culls == culls
+    assert culled.visible.subset.count < reference.count  # the photos of one side do not see the whole model
+    far = perturbed(start, meta.centres, np.random.default_rng(13), 20.0, 0.0, 0.0)
+    with torch.no_grad():
+        culled((reference.world_to_dataparser @ far).to_torch(), indices)
+    assert culled.visible.culls == 2  # 20 degrees from the last cull: culled again
+
+
 def test_same_seed_same_transform(reference, meta, ground_truth):
     start = perturbed_start(meta, ground_truth, 5, 3.0, 0.05, 0.05)
     settings = RegistrationSettings(**{**FAST, "steps": 15, "images_per_step": 2})

@@ -169,11 +169,7 @@ def prune(reference: ReferenceModel, count: int) -> ReferenceModel:
     """The reference model restricted to its `count` most opaque Gaussians (for a fixed-size speed test)."""
     if reference.means.shape[0] <= count:
         return reference
-    keep = torch.argsort(reference.opacities, descending=True)[:count]
-    return replace(
-        reference, means=reference.means[keep], covars=reference.covars[keep],
-        opacities=reference.opacities[keep], gaussian_features=reference.gaussian_features[keep], colors=reference.colors[keep],
-    )
+    return reference.subset(torch.argsort(reference.opacities, descending=True)[:count])
 
 
 def main(args: Args) -> None:

@@ -36,6 +36,7 @@ from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import per_image_loss
 from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.registration.visibility import CullingCamera, VisibleSubset
 
 RENDER_BATCH_ELEMENTS = 2_000_000
 """Cameras x Gaussians rendered in one call: all 20 photos at once for a 20k-Gaussian CPU model, one or two
@@ -171,10 +172,18 @@ def teacher_on_render_target(image: Tensor, render_wh: tuple[int, int], teacher:
 
 
 class PhotoLosses:
-    """Per-photo loss of the frozen reference model under a meta -> dataparser similarity."""
+    """Per-photo loss of the frozen reference model under a meta -> dataparser similarity.
 
-    def __init__(self, reference: ReferenceModel, photos: list[PreparedPhoto], objective: Objective, settings: RegistrationSettings, near_plane: float):
+    With `cull` (the default) the model is first restricted to what the photos can see around the pose
+    (`visibility.VisibleSubset`: the same renders, at a cost that follows the visible Gaussians)."""
+
+    def __init__(
+        self, reference: ReferenceModel, photos: list[PreparedPhoto], objective: Objective, settings: RegistrationSettings,
+        near_plane: float, cull: bool = True,
+    ):
         self.reference, self.photos, self.objective, self.settings, self.near_plane = reference, photos, objective, settings, near_plane
+        cameras = [CullingCamera(p.cam_from_meta, p.K, p.width, p.height) for p in photos]
+        self.visible = VisibleSubset(reference, cameras) if cull else None
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
 
     def __call__(self, meta_to_dataparser: Sim3, indices: list[int]) -> tuple[list[Tensor], Tensor]:
@@ -185,12 +194,15 @@ class PhotoLosses:
         The losses stay separate tensors so that a robust objective that ignores a photo never
         backpropagates through its render."""
         losses, coverage = [None] * len(indices), [None] * len(indices)
-        for size, positions in self.same_size_groups(indices):
+        start = time.perf_counter()
+        reference = self.visible.for_pose(meta_to_dataparser) if self.visible is not None else self.reference
+        self.timings["render"] += time.perf_counter() - start
+        for size, positions in self.same_size_groups(indices, reference.count):
             start = time.perf_counter()
             photos = [self.photos[indices[position]] for position in positions]
             viewmats = torch.stack([viewmat(meta_to_dataparser.move_camera(photo.cam_from_meta)) for photo in photos]).float()
             rendered, alpha = self.objective.render(
-                self.reference, viewmats, torch.stack([photo.K for photo in photos]), size[0], size[1], self.near_plane, self.settings.backend,
+                reference, viewmats, torch.stack([photo.K for photo in photos]), size[0], size[1], self.near_plane, self.settings.backend,
             )
             middle = time.perf_counter()
             for position, photo, render, covered in zip(positions, photos, rendered.unbind(0), alpha.detach()):
@@ -201,11 +213,12 @@ class PhotoLosses:
             self.timings["loss"] += time.perf_counter() - middle
         return losses, torch.stack(coverage)
 
-    def same_size_groups(self, indices: list[int]) -> list[tuple[tuple[int, int], list[int]]]:
+    def same_size_groups(self, indices: list[int], gaussians: int | None = None) -> list[tuple[tuple[int, int], list[int]]]:
         """Positions in `indices` grouped by the (width, height) their photos render at, in batches of at most
-        RENDER_BATCH_ELEMENTS // N cameras (the CPU renderer holds [cameras, N] tensors while culling)."""
+        RENDER_BATCH_ELEMENTS // N cameras for N `gaussians` (default: the whole model; the CPU renderer holds
+        [cameras, N] tensors while culling)."""
         groups: dict[tuple[int, int], list[int]] = {}
         for position, index in enumerate(indices):
             groups.setdefault((self.photos[index].width, self.photos[index].height), []).append(position)
-        per_batch = max(1, RENDER_BATCH_ELEMENTS // max(int(self.reference.means.shape[0]), 1))
+        per_batch = max(1, RENDER_BATCH_ELEMENTS // max(gaussians or self.reference.count, 1))
         return [(size, positions[i : i + per_batch]) for size, positions in groups.items() for i in range(0, len(positions), per_batch)]

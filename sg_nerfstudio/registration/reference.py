@@ -11,7 +11,7 @@ colours, features pre-multiplied by the linear decoder when that is narrower) is
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -43,6 +43,18 @@ class ReferenceModel:
     @property
     def feature_dim(self) -> int:
         return int(self.model.teacher_feature_dim)
+
+    @property
+    def count(self) -> int:
+        """N, the Gaussians this (possibly culled) reference renders."""
+        return int(self.means.shape[0])
+
+    def subset(self, ids: Tensor) -> "ReferenceModel":
+        """The same model restricted to the Gaussians `ids` [M] (int64 or bool mask)."""
+        return replace(
+            self, means=self.means[ids], covars=self.covars[ids], opacities=self.opacities[ids],
+            gaussian_features=self.gaussian_features[ids], colors=self.colors[ids],
+        )
 
     def render_rgb(
         self, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str = "auto",

@@ -11,7 +11,8 @@ from nerfstudio.utils.eval_utils import eval_setup
 
 from sg_nerfstudio.splat.datamanager import DatasetInputError
 from sg_nerfstudio.features import TeacherConfig, TeacherInputError
-from sg_nerfstudio.splat.training import cpu_config, short_cpu_schedule
+from sg_nerfstudio.splat.method import short_cpu_schedule
+from sg_nerfstudio.splat.training import cpu_config
 from conftest import make_config
 
 
@@ -26,6 +27,20 @@ def test_short_cpu_schedule_densifies_within_the_run(tmp_path, steps, warmup, st
     model = config.pipeline.model
     assert (model.warmup_length, model.stop_split_at, model.resolution_schedule) == (warmup, stop, steps // 6)
     assert model.warmup_length < model.stop_split_at <= steps
+
+
+def test_cpu_method_is_registered_with_the_demo_schedule():
+    """`ns-train sg-feature-splat-cpu` needs no page of flags: short schedule, offline teacher, this machine's device."""
+    from nerfstudio.plugins.registry import discover_methods
+
+    methods, _ = discover_methods()
+    assert {"sg-feature-splat", "sg-feature-splat-cpu"} <= set(methods)
+    config = methods["sg-feature-splat-cpu"]
+    assert config.max_num_iterations == 3000 and config.pipeline.datamanager.teacher.name == "offline"
+    model = config.pipeline.model
+    assert (model.resolution_schedule, model.warmup_length, model.stop_split_at) == (500, 500, 1200)
+    expected_device = "cuda" if torch.cuda.is_available() else "cpu"
+    assert config.machine.device_type == methods["sg-feature-splat"].machine.device_type == expected_device
 
 
 def test_learning_rate_schedules_follow_the_run_length(trained):

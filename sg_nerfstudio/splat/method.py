@@ -1,8 +1,11 @@
-"""`sg-feature-splat`: the nerfstudio method registered through the `nerfstudio.method_configs` entry point.
+"""`sg-feature-splat` and `sg-feature-splat-cpu`: the nerfstudio methods registered through the
+`nerfstudio.method_configs` entry point.
 
-    ns-train sg-feature-splat colmap --data <scene>/reference                      # DINOv2 teacher (local weights)
-    ns-train sg-feature-splat --pipeline.datamanager.teacher.name offline \\
-        --machine.device-type cpu colmap --data <scene>/reference                  # no weights, CPU
+    ns-train sg-feature-splat colmap --data <scene>/reference          # the paper: 12000 steps, DINOv2 (local weights)
+    ns-train sg-feature-splat-cpu colmap --data <scene>/reference      # CPU: sg-demo's 3000-step schedule, offline teacher
+
+Both train on the GPU when the machine has one and on the CPU otherwise (`--machine.device-type` overrides).
+`sg-feature-splat-cpu` is the short schedule of `short_cpu_schedule` with the weight-free offline teacher.
 
 splatfacto's optimisers, plus the supplement's: per-Gaussian features Adam lr 0.05 -> 1.6e-6
 (exponential decay, eps 1e-15) and the speedup decoder Adam lr 1e-3 (eps 1e-15); 12000 steps.
@@ -17,7 +20,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Type
 
-from nerfstudio.configs.base_config import ViewerConfig
+import copy
+
+import torch
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 
@@ -28,10 +34,13 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from sg_nerfstudio.errors import install_input_error_hook
+from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.splat.datamanager import FeatureDatamanagerConfig
 from sg_nerfstudio.splat.model import FeatureSplatfactoModelConfig
 
 MAX_STEPS = 12000
+CPU_STEPS = 3000
+"""Steps of `sg-feature-splat-cpu` (sg-demo's reference: about 7 minutes of a 2-core CPU)."""
 install_input_error_hook()
 
 
@@ -82,6 +91,29 @@ def scale_schedules(config: TrainerConfig) -> TrainerConfig:
     return config
 
 
+def short_cpu_schedule(config: TrainerConfig) -> TrainerConfig:
+    """Splatfacto's schedule scaled to a short CPU run of `config.max_num_iterations` steps (in place).
+
+    Splatfacto doubles the training resolution every 3000 of its 30000 steps, starts densifying after 500
+    steps and stops at step 15000; here the resolution doubles every sixth of the run, densification starts
+    after a sixth (splatfacto's 500 for a 3000-step run) and stops at 40% of it, which bounds the Gaussian
+    count (hence the CPU step time) and leaves most steps to refine at full size. The background is learned:
+    the Gaussians that SfM points initialise never cover a smooth sky. (Learning rates follow the run's
+    length through `scale_schedules` in any case.)
+    """
+    steps = config.max_num_iterations
+    config.pipeline.model.resolution_schedule = max(steps // 6, 1)
+    config.pipeline.model.warmup_length = min(config.pipeline.model.warmup_length, max(steps // 6, 1))
+    config.pipeline.model.stop_split_at = int(0.4 * steps)
+    config.pipeline.model.background_color = "learned"
+    return config
+
+
+def default_device() -> str:
+    """What the machine has: 'cuda' with a CUDA device, else 'cpu' (nerfstudio's own default is always 'cuda')."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def _adam(lr: float, lr_final: float | None = None, **scheduler) -> dict:
     return {
         "optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15),
@@ -97,6 +129,7 @@ sg_feature_splat_config = FeatureSplatTrainerConfig(
     steps_per_eval_all_images=1000,
     max_num_iterations=MAX_STEPS,
     mixed_precision=False,
+    machine=MachineConfig(device_type=default_device()),
     pipeline=VanillaPipelineConfig(
         datamanager=FeatureDatamanagerConfig(dataparser=ColmapDataParserConfig(load_3D_points=True)),
         model=FeatureSplatfactoModelConfig(),
@@ -121,4 +154,20 @@ sg_feature_splat_config = FeatureSplatTrainerConfig(
 sg_feature_splat = MethodSpecification(
     config=sg_feature_splat_config,
     description="Scene Grounding In the Wild reference model: splatfacto with distilled per-Gaussian features (CPU and CUDA).",
+)
+
+
+def _cpu_config() -> TrainerConfig:
+    config = copy.deepcopy(sg_feature_splat_config)
+    config.method_name = "sg-feature-splat-cpu"
+    config.max_num_iterations = CPU_STEPS
+    config.steps_per_eval_image = config.steps_per_save = 500
+    config.steps_per_eval_all_images = CPU_STEPS
+    config.pipeline.datamanager.teacher = TeacherConfig(name="offline", input_size=256)
+    return short_cpu_schedule(config)
+
+
+sg_feature_splat_cpu = MethodSpecification(
+    config=_cpu_config(),
+    description="sg-feature-splat for a CPU: 3000 steps (sg-demo's schedule), the weight-free offline teacher.",
 )

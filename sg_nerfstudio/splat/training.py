@@ -1,7 +1,8 @@
 """Programmatic sg-feature-splat training on CPU (for the demo, benchmarks and tests).
 
 `ns-train sg-feature-splat ...` is the user-facing way; this runs the same Trainer step by step so a
-caller can watch progress and losses without the viewer or log writers.
+caller can watch progress and losses without the viewer or log writers. `short_cpu_schedule` (defined with
+the method, re-exported here) is the schedule of the demo, sg-bench and `sg-feature-splat-cpu`.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from nerfstudio.engine.callbacks import TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 
 from sg_nerfstudio.features import TeacherConfig
-from sg_nerfstudio.splat.method import sg_feature_splat_config
+from sg_nerfstudio.splat.method import sg_feature_splat_config, short_cpu_schedule
 
 
 def cpu_config(data: Path, output: Path, steps: int, teacher: TeacherConfig, experiment_name: Optional[str] = None) -> TrainerConfig:
@@ -29,23 +30,6 @@ def cpu_config(data: Path, output: Path, steps: int, teacher: TeacherConfig, exp
     config.pipeline.datamanager.data = Path(data)
     config.pipeline.datamanager.teacher = teacher
     config.set_timestamp()
-    return config
-
-
-def short_cpu_schedule(config: TrainerConfig) -> TrainerConfig:
-    """Splatfacto's schedule scaled to a short CPU run of `config.max_num_iterations` steps (in place).
-
-    Splatfacto doubles the training resolution every 3000 of its 30000 steps, starts densifying after 500
-    steps and stops at step 15000; here the resolution doubles every sixth of the run, densification starts
-    after a sixth (splatfacto's 500 for a 3000-step run) and stops at 40% of it, which bounds the Gaussian
-    count (hence the CPU step time) and leaves most steps to refine at full size. The background is learned:
-    the Gaussians that SfM points initialise never cover a smooth sky.
-    """
-    steps = config.max_num_iterations
-    config.pipeline.model.resolution_schedule = max(steps // 6, 1)
-    config.pipeline.model.warmup_length = min(config.pipeline.model.warmup_length, max(steps // 6, 1))
-    config.pipeline.model.stop_split_at = int(0.4 * steps)
-    config.pipeline.model.background_color = "learned"
     return config
 
 
@@ -74,3 +58,6 @@ def save(trainer: Trainer, config: TrainerConfig) -> Path:
     config.save_config()
     trainer.pipeline.datamanager.train_dataparser_outputs.save_dataparser_transform(trainer.base_dir / "dataparser_transforms.json")
     return config.get_base_dir() / "config.yml"
+
+
+__all__ = ["cpu_config", "save", "short_cpu_schedule", "train"]

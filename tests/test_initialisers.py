@@ -18,7 +18,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
+from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource, set_colmap_verbosity
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.metrics import pose_errors
@@ -228,3 +228,17 @@ def test_baseline_cli_missing_reference_model_is_one_sentence_and_no_output(scen
     assert "Reference COLMAP model" in err and str(tmp_path / "nowhere") in err.replace("\n", "")
     assert err.strip().count("\n") == 0, err
     assert not out.exists()
+
+
+def test_colmap_info_log_shows_only_when_verbose(capfd):
+    """COLMAP's glog INFO lines (hundreds per meta-image) stay off the terminal unless --verbose; warnings stay."""
+    try:
+        set_colmap_verbosity(False)
+        pycolmap.logging.info("sg-probe-quiet")
+        pycolmap.logging.warning("sg-probe-warning")
+        set_colmap_verbosity(True)
+        pycolmap.logging.info("sg-probe-verbose")
+    finally:
+        set_colmap_verbosity(False)
+    err = capfd.readouterr().err
+    assert "sg-probe-quiet" not in err and "sg-probe-warning" in err and "sg-probe-verbose" in err

@@ -241,6 +241,47 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
     assert not any(p.name.startswith(".") for p in out.iterdir())  # no staging directory left
 
 
+def test_cli_without_config_picks_the_preset_for_the_device_and_labels_its_comparisons(reference_config, tiny_scene, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = register_main([
+        "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
+        "--init", str(tiny_scene / "meta" / "front" / "gt_transform.json"), "--steps", "2",
+    ])
+    printed = capsys.readouterr().out
+    assert code == 0
+    expected = "paper" if torch.cuda.is_available() else "fast-cpu"  # the tiny reference uses the offline teacher
+    assert f"Registration preset: {expected}" in printed
+    settings = json.loads((out / "front" / "transform.json").read_text())["settings"]
+    assert settings["objective"] == ("features" if expected == "paper" else "teacher-on-render") and settings["steps"] == 2
+    from sg_nerfstudio.registration.outputs import COMPARISON_LONG_SIDE, TITLE_HEIGHT
+
+    photo = load_meta_image(tiny_scene / "meta" / "front").photos[0]
+    scale = COMPARISON_LONG_SIDE / max(photo.camera.width, photo.camera.height)
+    comparison = cv2.imread(str(next((out / "front" / "report" / "comparisons").glob("*_before_after.png"))))
+    assert comparison.shape[0] == TITLE_HEIGHT + round(scale * photo.camera.height)
+    title = comparison[:TITLE_HEIGHT]
+    assert 0 < (title < 128).all(axis=2).mean() < 0.3  # dark text on the white strip above each panel
+
+
+def test_summary_table_is_readable_at_80_columns():
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from sg_nerfstudio.registration.metrics import PoseErrors
+    from sg_nerfstudio.registration.session import MetaOutcome, summary_table
+
+    meta = SimpleNamespace(name="front-facade", photos=[None] * 16)
+    result = SimpleNamespace(final_trimmed_loss=0.0123, wall_time_s=215.3)
+    errors = {"before": PoseErrors(15.0, 0.1, [], []), "after": PoseErrors(0.31, 0.0041, [], [])}
+    console = Console(width=80, record=True)
+    console.print(summary_table([MetaOutcome(meta, result, errors), MetaOutcome(meta)]))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
+    for cell in ("meta-image", "photos", "ΔR (°)", "ΔT", "accurate", "outlier", "loss", "15.00→0.31", "0.100→0.004", "no→yes", "yes→no", "215", "init failed"):
+        assert cell in text, cell
+
+
 def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
     target = tmp_path / "front"
     shutil.copytree(tiny_scene / "meta" / "front", target)

@@ -8,11 +8,12 @@ from sg_nerfstudio.initialisers.pipeline import (
     reference_source_from_config,
     resolve_reference_source,
     rich_progress,
+    set_colmap_verbosity,
     silent_progress,
 )
 from sg_nerfstudio.initialisers.reference_cloud import ReferenceSource, ReferenceSourceError
 
 __all__ = [
     "METHODS", "InitialiserSettings", "Initialiser", "InitResult", "ReferenceSource", "ReferenceSourceError",
-    "reference_source_from_config", "resolve_reference_source", "rich_progress", "silent_progress",
+    "reference_source_from_config", "resolve_reference_source", "rich_progress", "set_colmap_verbosity", "silent_progress",
 ]

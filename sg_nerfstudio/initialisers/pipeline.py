@@ -146,6 +146,12 @@ def resolve_reference_source(config_path: Optional[Path], colmap_path: Optional[
                            Path(images_path) if images_path else from_config.images_path)
 
 
+def set_colmap_verbosity(verbose: bool) -> None:
+    """COLMAP's own log (glog, on stderr): its INFO lines with `verbose`, else only warnings and errors
+    (extraction, matching and triangulation otherwise print hundreds of lines between the progress bars)."""
+    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.INFO if verbose else pycolmap.logging.Level.WARNING)
+
+
 def silent_progress(description: str, total: int):
     """A progress factory that draws nothing."""
     return lambda: None

@@ -4,8 +4,8 @@
                      transform, final trimmed loss, steps, wall time, settings
     aligned/         the meta-image's COLMAP model moved into the reference world frame
     losses.csv       per step and photo: loss, whether LTS kept it, its weight
-    report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (top half: reference model
-                     rendered at the photo's pose, bottom half: the photo; before and after)
+    report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (before | after, each titled; top
+                     half: reference model rendered at the photo's pose, bottom half: the photo; labelled)
     metrics.json     with --gt: ΔR, ΔT, accurate/outlier before and after
 """
 
@@ -130,8 +130,8 @@ def render_rgb_at_photo(reference: ReferenceModel, cam_from_meta: Array, K: Arra
 
 
 def _write_comparisons(directory: Path, reference: ReferenceModel, meta: MetaImage, result: RegistrationResult, count: int = 4) -> None:
-    """For the photos with the lowest and highest final loss: [before | after], each with the model's render
-    in the top half and the photo in the bottom half (the paper's figures)."""
+    """For the photos with the lowest and highest final loss: [before | after] (the paper's figures), each panel
+    the model's render in the top half over the photo in the bottom half, every part labelled in the image."""
     directory.mkdir()
     order = np.argsort(result.final_losses)
     chosen = list(dict.fromkeys([*order[: count // 2], *order[::-1][: count - count // 2]]))
@@ -140,13 +140,34 @@ def _write_comparisons(directory: Path, reference: ReferenceModel, meta: MetaIma
         image, K = photo.load_resized(COMPARISON_LONG_SIDE)
         height, width = image.shape[:2]
         panels = []
-        for transform in (result.initial_transform, result.transform):
+        for transform, title in ((result.initial_transform, "before (initial transform)"), (result.transform, "after (registered)")):
             render = render_rgb_at_photo(reference, photo.cam_from_world, K, width, height, transform, result.near_plane)
             panel = image.copy()
             panel[: height // 2] = render[: height // 2]
             panel[height // 2 - 1 : height // 2 + 1] = 255
-            panels.append(panel)
-        separator = np.full((height, 6, 3), 255, np.uint8)
+            _label(panel, "model render", (0, 0))
+            _label(panel, "photo", (0, height // 2 + 1))
+            panels.append(np.concatenate([_title_strip(title, width), panel], axis=0))
+        separator = np.full((panels[0].shape[0], 6, 3), 255, np.uint8)
         combined = np.concatenate([panels[0], separator, panels[1]], axis=1)
         name = Path(photo.name).stem
         cv2.imwrite(str(directory / f"{name}_before_after.png"), cv2.cvtColor(combined, cv2.COLOR_RGB2BGR))
+
+
+LABEL_FONT = cv2.FONT_HERSHEY_SIMPLEX
+TITLE_HEIGHT = 22
+
+
+def _title_strip(text: str, width: int) -> Array:
+    """[TITLE_HEIGHT, width, 3] white strip with `text` in black."""
+    strip = np.full((TITLE_HEIGHT, width, 3), 255, np.uint8)
+    cv2.putText(strip, text, (4, TITLE_HEIGHT - 7), LABEL_FONT, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    return strip
+
+
+def _label(panel: Array, text: str, corner: tuple[int, int]) -> None:
+    """White `text` on a black box at `corner` (x, y of its top-left) of an [H, W, 3] panel, in place."""
+    (text_width, text_height), baseline = cv2.getTextSize(text, LABEL_FONT, 0.4, 1)
+    x, y = corner
+    cv2.rectangle(panel, (x, y), (x + text_width + 6, y + text_height + baseline + 4), (0, 0, 0), thickness=-1)
+    cv2.putText(panel, text, (x + 3, y + text_height + 2), LABEL_FONT, 0.4, (255, 255, 255), 1, cv2.LINE_AA)

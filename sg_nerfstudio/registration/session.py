@@ -20,6 +20,7 @@ from typing import Annotated, Literal, Optional
 
 import pycolmap
 import tyro
+from rich import box
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
@@ -28,7 +29,7 @@ from rich.text import Text
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress
+from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.objectives import prepare_photos
@@ -57,7 +58,8 @@ class RegistrationJob:
     """Results go to <output-dir>/<meta-image directory name>/."""
     config: Optional[str] = None
     """Registration preset: a name (paper, fast-cpu, fast-cpu-features) or a YAML file; the flags below override
-    single values. Default: the paper's settings (12000 steps; `fast-cpu` takes about a minute on CPU)."""
+    single values. Default by device: `paper` on CUDA (12000 steps); on a CPU `fast-cpu` for references trained
+    with the offline teacher, `fast-cpu-features` for DINOv2 ones."""
     init: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """Initial transform meta -> reference world: 'identity' (the default), 'colmap' (photos registered into
     the reference COLMAP model, Sim(3) from their centres), 'generalized' (the meta-image as one
@@ -83,6 +85,8 @@ class RegistrationJob:
     """Replace existing result directories."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Where the reference model is loaded and rendered."""
+    verbose: bool = False
+    """Show COLMAP's INFO log while initialising (default: its warnings and errors only)."""
 
 
 @dataclass
@@ -152,6 +156,7 @@ def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     reference_part = read_reference_part(job) if job.merge_reference and len(metas) > 1 else None
     initialiser = None
     if any(value in METHODS for value in init_values):
+        set_colmap_verbosity(job.verbose)
         source = resolve_reference_source(job.load_config, job.reference_colmap, job.reference_images)
         initialiser = Initialiser(source, InitialiserSettings(alignment_max_error=job.init_max_error, cache_dir=job.init_cache_dir))
         initialiser.check_reference()
@@ -183,6 +188,15 @@ def register_one(job: RegistrationJob, reference, meta: MetaImage, initial: Sim3
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}
     target = write_outputs(job.output_dir / meta.name, reference, meta, result, errors, overwrite=job.overwrite)
     return MetaOutcome(meta, result, errors, target)
+
+
+def default_preset(load_config: Path, device: str) -> str:
+    """The preset for a job without --config: the paper's on CUDA, a CPU preset that suits the reference's teacher
+    otherwise (the paper's 12000 steps take hours on a CPU)."""
+    if resolve_device(device) == "cuda":
+        return "paper"
+    teacher = read_trainer_config(load_config).pipeline.datamanager.teacher.name
+    return "fast-cpu" if teacher == "offline" else "fast-cpu-features"
 
 
 def resolve_device(device: str) -> str:
@@ -233,24 +247,32 @@ def compute_initial_transform(initialiser: Initialiser, meta: MetaImage, method:
     return outcome.transform
 
 
-def print_summary(outcomes: list[MetaOutcome], console: Console) -> None:
-    table = Table(title="ns-register-meta")
-    for column in ("meta-image", "photos", "ΔR before (°)", "ΔT before", "ΔR after (°)", "ΔT after", "accurate", "outlier", "trimmed loss", "time (s)"):
-        table.add_column(column, justify="right")
+def summary_table(outcomes: list[MetaOutcome]) -> Table:
+    """One row per meta-image, readable at 80 columns: errors as before→after (with --gt), trimmed loss, seconds."""
+    table = Table(title="ns-register-meta", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True, caption="ΔR, ΔT, accurate, outlier: before→after (with --gt); loss: final trimmed loss")
+    for column in ("meta-image", "photos", "ΔR (°)", "ΔT", "accurate", "outlier", "loss", "s"):
+        if column == "meta-image":
+            table.add_column(column, overflow="fold", min_width=10)
+        else:
+            table.add_column(column, justify="right", no_wrap=True)
+    yes_no = {True: "yes", False: "no"}
     for outcome in outcomes:
         meta, result, errors = outcome.meta, outcome.result, outcome.errors
         if result is None:
-            table.add_row(meta.name, str(len(meta.photos)), "initialisation failed", *[""] * 7)
+            table.add_row(meta.name, str(len(meta.photos)), "init failed", *[""] * 5)
             continue
         if errors:
             before, after = errors["before"], errors["after"]
-            cells = [f"{before.rotation_deg:.2f}", f"{before.translation:.3f}", f"{after.rotation_deg:.2f}", f"{after.translation:.3f}",
-                     f"{before.accurate()} -> {after.accurate()}", f"{before.outlier()} -> {after.outlier()}"]
+            cells = [f"{before.rotation_deg:.2f}→{after.rotation_deg:.2f}", f"{before.translation:.3f}→{after.translation:.3f}",
+                     f"{yes_no[before.accurate()]}→{yes_no[after.accurate()]}", f"{yes_no[before.outlier()]}→{yes_no[after.outlier()]}"]
         else:
-            cells = ["-"] * 6
-        table.add_row(meta.name, str(len(meta.photos)), *cells, f"{result.final_trimmed_loss:.4f}", f"{result.wall_time_s:.1f}")
-    console.print(table)
+            cells = ["-"] * 4
+        table.add_row(meta.name, str(len(meta.photos)), *cells, f"{result.final_trimmed_loss:.4f}", f"{result.wall_time_s:.0f}")
+    return table
+
+
+def print_summary(outcomes: list[MetaOutcome], console: Console) -> None:
+    console.print(summary_table(outcomes))
     for outcome in outcomes:
         if outcome.target is not None:
             console.print(f"{outcome.meta.name}: transform, aligned model and report in {outcome.target}", soft_wrap=True)
-

@@ -29,6 +29,7 @@ from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
 from sg_nerfstudio.geometry.meta_image import load_meta_image
+from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.registration.settings import load_preset
 from sg_nerfstudio.scripts.cli import cli_main
 
@@ -62,11 +63,14 @@ class BenchArgs:
     """Random subsets per size and meta-image (paper: 5)."""
     seed: int = 0
     threads: int = 2
+    verbose: bool = False
+    """Show COLMAP's INFO log while initialising (default: its warnings and errors only)."""
 
 
 def run(args: BenchArgs, console: Console) -> Path:
     started = time.perf_counter()
     torch.set_num_threads(args.threads)
+    set_colmap_verbosity(args.verbose)
     scenes = read_benchmark(args.benchmark)
     options = BenchOptions(
         settings=load_preset(args.config), train_steps=args.train_steps, initialisers=args.initialisers,

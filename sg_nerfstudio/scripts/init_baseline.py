@@ -34,7 +34,7 @@ from rich.text import Text
 
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.geometry.meta_image import load_meta_image
-from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, InitResult, resolve_reference_source, rich_progress
+from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, InitResult, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.session import ArgumentError, read_ground_truths
 from sg_nerfstudio.scripts.cli import cli_main
@@ -62,6 +62,8 @@ class InitBaselineArgs:
     overwrite: bool = False
     """Replace an existing output directory."""
     initialiser: InitialiserSettings = field(default_factory=InitialiserSettings)
+    verbose: bool = False
+    """Show COLMAP's INFO log (default: its warnings and errors only)."""
 
 
 def run(args: InitBaselineArgs, console: Console) -> list[dict]:
@@ -73,6 +75,7 @@ def run(args: InitBaselineArgs, console: Console) -> list[dict]:
     if len(set(names)) != len(names):
         raise ArgumentError(f"Meta-image directories must have distinct names (outputs go to <output-dir>/<name>), got {names}.")
     gts = read_ground_truths(args.gt, len(metas))
+    set_colmap_verbosity(args.verbose)
     initialiser = Initialiser(source, args.initialiser)
     initialiser.check_reference()
 

@@ -5,7 +5,8 @@
         [--gt scene/meta/front/gt_transform.json] [--config fast-cpu] [--steps 400 ...]
 
 `--config` names a registration preset (paper, fast-cpu, fast-cpu-features) or a YAML file of the settings;
-flags override single settings. `--init` and `--gt` take one value per meta-image (a single `--init` applies
+flags override single settings. Without it the preset follows the device (`paper` on CUDA, a CPU preset
+otherwise) and the command says which. `--init` and `--gt` take one value per meta-image (a single `--init` applies
 to all). The session itself (initialisers, registration, outputs, merged/) is
 `sg_nerfstudio.registration.session`. Exit status 1 for a bad input and when no meta-image was registered.
 """
@@ -14,23 +15,30 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Optional
 
 import tyro
 from rich.console import Console
 
-from sg_nerfstudio.registration.session import RegistrationJob, run_job
+from sg_nerfstudio.registration.session import RegistrationJob, default_preset, run_job
 from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
 from sg_nerfstudio.scripts.cli import cli_main
 
 
-def parse_args(argv: list[str]) -> RegistrationJob:
-    """tyro's parse, with the settings' defaults taken from `--config` (wherever it appears) when given."""
+def parse_args(argv: list[str], console: Console) -> RegistrationJob:
+    """tyro's parse, with the settings' defaults taken from `--config` (wherever it appears), else from the
+    preset the device calls for (see `default_preset`)."""
     pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--config", default=None)
+    for flag in ("--config", "--load-config", "--device"):
+        pre.add_argument(flag, default=None)
     known, _ = pre.parse_known_args(argv)
-    settings = load_preset(known.config) if known.config else RegistrationSettings()
-    default = RegistrationJob(load_config=tyro.MISSING, meta_image=tyro.MISSING, output_dir=tyro.MISSING, settings=settings)
+    preset = known.config
+    if preset is None and known.load_config is not None and not {"-h", "--help"} & set(argv):
+        preset = default_preset(Path(known.load_config), known.device or "auto")
+        console.print(f"Registration preset: {preset} (no --config given; chosen for this device and reference).")
+    settings = load_preset(preset) if preset else RegistrationSettings()
+    default = RegistrationJob(load_config=tyro.MISSING, meta_image=tyro.MISSING, output_dir=tyro.MISSING, config=preset, settings=settings)
     return tyro.cli(RegistrationJob, args=argv, default=default, prog="ns-register-meta", config=(tyro.conf.OmitArgPrefixes,))
 
 
@@ -38,7 +46,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
 
     def body() -> int:
-        outcomes = run_job(parse_args(argv), Console())
+        console = Console()
+        outcomes = run_job(parse_args(argv, console), console)
         return 0 if any(outcome.result is not None for outcome in outcomes) else 1
 
     return cli_main(body)

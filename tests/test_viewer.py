@@ -195,6 +195,15 @@ def test_a_toggle_per_meta_image_and_kind_hides_its_frustums(session):
         toggles[key].value = True
 
 
+def test_only_what_a_registration_needs_is_shown(session):
+    """No training controls for a frozen model, no title bar whose logo and links need the internet."""
+    viewer = session.viewer
+    assert not viewer.pause_train.visible and not viewer.resume_train.visible and not viewer.stats_markdown.visible
+    assert not viewer.control_panel._train_speed.gui_handle.visible and not viewer.control_panel._train_util.gui_handle.visible
+    themes = [m for m in scene_messages(session.port) if m["type"] == "ThemeConfigurationMessage"]
+    assert themes and themes[-1]["titlebar_content"] is None
+
+
 def test_feature_pca_is_a_stable_viewer_output(session):
     """The viewer lists the keys of get_outputs_for_camera for the camera it builds from the browser's state."""
     from nerfstudio.cameras.cameras import CameraType

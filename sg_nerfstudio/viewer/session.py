@@ -2,7 +2,8 @@
 
 `start_viewer` checks the inputs, loads the model exactly as `ns-viewer` does (output types rgb / depth /
 accumulation / features / feature_pca, training cameras, render and export tabs), starts
-`nerfstudio.viewer.viewer.Viewer` and adds the registration scene; `ViewerSession.stop()` frees the port
+`nerfstudio.viewer.viewer.Viewer` without what means nothing for a frozen model (training controls, step
+counter, the title bar's online logo) and adds the registration scene; `ViewerSession.stop()` frees the port
 and its threads.
 
 Resolution: nerfstudio's render state machine renders at a reduced resolution while the camera moves (sized
@@ -126,6 +127,17 @@ def start_viewer(args: ViewRegistrationArgs, console: Console) -> ViewerSession:
     writer.setup_local_writer(config.logging, max_iter=config.max_num_iterations, banner_messages=viewer.viewer_info)
     viewer.init_scene(train_dataset=pipeline.datamanager.train_dataset, train_state="completed", eval_dataset=pipeline.datamanager.eval_dataset)
     viewer.control_panel._max_res.value = args.max_res
+    show_only_what_a_registration_needs(viewer)
     scene = RegistrationScene(viewer, registrations, run.world_to_dataparser, args.frustum_scale)
     viewer.update_scene(step=step)
     return ViewerSession(viewer, scene, pipeline)
+
+
+def show_only_what_a_registration_needs(viewer) -> None:
+    """Hide nerfstudio's training controls (Pause / Resume Training, Train Speed, Train Util, the "Step"
+    counter: the model is frozen) and its title bar, whose logo and links are fetched from the internet."""
+    for button in (viewer.pause_train, viewer.resume_train, viewer.stats_markdown):
+        button.visible = False
+    for element in (viewer.control_panel._train_speed, viewer.control_panel._train_util):
+        element.set_hidden(True)
+    viewer.viser_server.gui.configure_theme(titlebar_content=None, control_layout="collapsible", dark_mode=True, brand_color=(255, 211, 105))

@@ -262,3 +262,19 @@ def test_default_strategy_densifies_with_cpu_info(backend):
             opt.zero_grad()
     assert len(params["means"]) > 300
     assert all(len(p) == len(params["means"]) for p in params.values())
+
+
+def test_threads_setting_sizes_torch_and_numba_pools():
+    import numba
+
+    from sg_nerfstudio.render.threads import available_cores, set_threads
+
+    before = (torch.get_num_threads(), numba.get_num_threads())
+    try:
+        assert set_threads(1) == 1
+        assert (torch.get_num_threads(), numba.get_num_threads()) == (1, 1)
+        assert set_threads(None) == available_cores() >= 1
+        assert torch.get_num_threads() == available_cores()
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])

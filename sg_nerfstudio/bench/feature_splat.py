@@ -18,11 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-import torch
 import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.synthetic import PRESETS, generate_scene
 from sg_nerfstudio.splat.training import cpu_config, save, train
@@ -40,7 +40,7 @@ class Args:
     """Steps per resolution doubling (splatfacto: 3000, for 30k-step GPU runs)."""
     teacher_input_size: int = 256
     """Offline teacher input size (grid = size / 8)."""
-    threads: int = 2
+    threads: Optional[int] = None
     log_every: int = 250
     """Print progress every this many steps."""
     feature_dim: int = 128
@@ -53,7 +53,7 @@ class Args:
 
 
 def run(args: Args) -> dict:
-    torch.set_num_threads(args.threads)
+    args.threads = set_threads(args.threads)
     console = Console(width=120)
     output = args.output or Path(tempfile.mkdtemp(prefix="sg_bench_feature_splat_"))
     timings = {}

@@ -20,6 +20,7 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
@@ -27,6 +28,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.render import rasterize
 from sg_nerfstudio.render.cpu_rasterizer import brute_force_composite
 from sg_nerfstudio.render.projection import covariances_from_quats_scales, project_gaussians
@@ -38,8 +40,8 @@ from sg_nerfstudio.synthetic.capture import look_at
 class Args:
     repeats: int = 5
     """Timed runs per measurement (median reported), after one warm-up run."""
-    threads: int = 2
-    """torch intra-op threads."""
+    threads: Optional[int] = None
+    """CPU threads of torch and numba (default: the cores this process may use)."""
     channels: int = 131
     """Colour channels rendered."""
 
@@ -101,7 +103,7 @@ def run_dense(case: dict, backward: bool) -> tuple[float, float]:
 
 
 def main(args: Args) -> None:
-    torch.set_num_threads(args.threads)
+    args.threads = set_threads(args.threads)
     console = Console(width=150)
     table = Table(title=f"CPU rasterizer, ms per camera (median of {args.repeats}, {args.threads} threads, {args.channels} channels)")
     for column in ("case", "visible", "forward", "backward (all)", "backward (pose)", "fwd+bwd (all)", "fwd+bwd (pose)", "goal fwd+bwd (all)"):

@@ -25,6 +25,7 @@ import statistics
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -32,6 +33,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.bench.runs import ABLATIONS, PERTURBED_START
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
@@ -64,7 +66,7 @@ class Args:
     skip: tuple[str, ...] = ()
     """Parts to skip: accuracy, ablations, speed."""
     output: Path = Path("benchmark_registration.json")
-    threads: int = 2
+    threads: Optional[int] = None
 
 
 def scene_variant(scene: Path, name: str, **changes) -> Path:
@@ -176,7 +178,7 @@ def main(args: Args) -> None:
     unknown = [name for name in args.ablation_rows if name not in ABLATIONS]
     if unknown:
         raise SystemExit(f"Unknown ablation row(s) {', '.join(unknown)}; expected some of {', '.join(ABLATIONS)}.")
-    torch.set_num_threads(args.threads)
+    args.threads = set_threads(args.threads)
     console = Console(width=140)
     settings = load_preset(args.config)
     reference = load_reference(args.load_config)

@@ -37,6 +37,7 @@ from sg_nerfstudio.registration.optimize import RegistrationResult, register
 from sg_nerfstudio.registration.outputs import write_outputs
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.splat.trained import read_trainer_config
 
 MERGED = "merged"
@@ -87,6 +88,8 @@ class RegistrationJob:
     """Where the reference model is loaded and rendered."""
     verbose: bool = False
     """Show COLMAP's INFO log while initialising (default: its warnings and errors only)."""
+    threads: Optional[int] = None
+    """CPU threads of torch and numba (default: the cores this process may use); give concurrent jobs a share each."""
 
 
 @dataclass
@@ -144,6 +147,7 @@ def check_targets(job: RegistrationJob, names: list[str]) -> None:
 def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     """Register every meta-image of the job, write its outputs and (for several) merged/; see the module docstring."""
     read_trainer_config(job.load_config)  # fail fast on a wrong config, before heavy work
+    set_threads(job.threads)
     metas = [load_meta_image(path) for path in job.meta_image]
     check_targets(job, [meta.name for meta in metas])
     init_values = per_meta_values(job.init or ("identity",), len(metas), "--init", allow_single=True)

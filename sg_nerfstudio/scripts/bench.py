@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal, Optional
 
-import torch
 import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -31,6 +30,7 @@ from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.registration.settings import load_preset
+from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.scripts.cli import cli_main
 
 Start = Literal["colmap", "generalized", "perturbed"]
@@ -62,14 +62,15 @@ class BenchArgs:
     size_samples: int = 1
     """Random subsets per size and meta-image (paper: 5)."""
     seed: int = 0
-    threads: int = 2
+    threads: Optional[int] = None
+    """CPU threads of torch and numba (default: the cores this process may use)."""
     verbose: bool = False
     """Show COLMAP's INFO log while initialising (default: its warnings and errors only)."""
 
 
 def run(args: BenchArgs, console: Console) -> Path:
     started = time.perf_counter()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     set_colmap_verbosity(args.verbose)
     scenes = read_benchmark(args.benchmark)
     options = BenchOptions(

@@ -32,6 +32,7 @@ from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.registration.session import RegistrationJob, run_job
 from sg_nerfstudio.registration.settings import load_preset
+from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.scripts.cli import cli_main
 from sg_nerfstudio.splat.training import cpu_config, save, short_cpu_schedule, train
 from sg_nerfstudio.synthetic import PRESETS, generate_scene
@@ -51,6 +52,8 @@ class DemoArgs:
     perturbation_translation: float = 0.1
     perturbation_scale: float = 0.1
     seed: int = 0
+    threads: Optional[int] = None
+    """CPU threads of torch and numba (default: the cores this process may use)."""
 
 
 def train_reference(scene: Path, output: Path, steps: int, console: Console) -> Path:
@@ -82,6 +85,7 @@ def perturbed_initialisations(scene: Path, output: Path, args: DemoArgs) -> tupl
 
 def run(args: DemoArgs, console: Console) -> int:
     started = time.perf_counter()
+    set_threads(args.threads)
     settings = load_preset(args.config)
     if args.output.exists() and any(args.output.iterdir()):
         raise InputError(f"Demo output {args.output} exists and is not empty; choose another --output or remove it.")
@@ -97,7 +101,7 @@ def run(args: DemoArgs, console: Console) -> int:
     metas, inits, gts = perturbed_initialisations(scene, args.output, args)
     job = RegistrationJob(
         load_config=config_path, meta_image=tuple(metas), output_dir=args.output / "registrations",
-        config=args.config, init=tuple(str(p) for p in inits), gt=tuple(gts), settings=settings, device="cpu",
+        config=args.config, init=tuple(str(p) for p in inits), gt=tuple(gts), settings=settings, device="cpu", threads=args.threads,
     )
     run_job(job, console)
     console.print(f"Demo finished in {time.perf_counter() - started:.0f} s. Reports: {args.output / 'registrations'}/<meta-image>/report/")

@@ -20,7 +20,7 @@ from torch import Tensor
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.registration.objectives import PhotoLosses, PreparedPhoto, build_objective, prepare_photos
+from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator
 from sg_nerfstudio.registration.settings import RegistrationSettings
@@ -140,13 +140,15 @@ def register(
     settings: RegistrationSettings,
     photos: Optional[list[PreparedPhoto]] = None,
     on_step: Optional[Callable[[int, Sim3], None]] = None,
+    objective: Optional[Objective] = None,
 ) -> RegistrationResult:
     """Estimate the Sim(3) meta -> reference world starting from `initial_world`.
 
+    `photos` and `objective` may come prepared (`prepare_photos`, `build_objective`: the teacher is built once).
     `on_step(step, transform)` is called after every step with the current estimate (meta -> world).
     """
     started = time.perf_counter()
-    objective = build_objective(reference, settings)
+    objective = objective or build_objective(reference, settings)
     photos = photos if photos is not None else prepare_photos(reference, meta, settings, objective)
     world_to_ns = reference.world_to_dataparser
     ns_to_world = world_to_ns.inverse()

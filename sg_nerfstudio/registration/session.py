@@ -32,7 +32,7 @@ from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
-from sg_nerfstudio.registration.objectives import prepare_photos
+from sg_nerfstudio.registration.objectives import build_objective, prepare_photos
 from sg_nerfstudio.registration.optimize import RegistrationResult, register
 from sg_nerfstudio.registration.outputs import write_outputs
 from sg_nerfstudio.registration.reference import load_reference
@@ -182,11 +182,12 @@ def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
 
 def register_one(job: RegistrationJob, reference, meta: MetaImage, initial: Sim3, gt: Optional[Sim3], console: Console) -> MetaOutcome:
     """Register one meta-image with a progress bar and write its result directory."""
-    photos = prepare_photos(reference, meta, job.settings)
+    objective = build_objective(reference, job.settings)
+    photos = prepare_photos(reference, meta, job.settings, objective)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console, transient=True) as progress:
         task = progress.add_task(f"Registering {meta.name}", total=job.settings.steps)
-        result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task))
+        result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective)
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}

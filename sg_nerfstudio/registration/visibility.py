@@ -52,6 +52,7 @@ class VisibleSubset:
 
     def __init__(self, reference: ReferenceModel, cameras: list[CullingCamera]):
         self.reference, self.cameras = reference, cameras
+        self.centres = np.stack([camera_to_world(c.cam_from_meta.numpy())[:, 3] for c in cameras]) if cameras else np.zeros((0, 3))
         self.pose: Sim3 | None = None  # meta -> dataparser at the last cull (numpy)
         self.depths = np.zeros(len(cameras))  # median depth of the Gaussians each camera saw then
         self.subset = reference
@@ -68,11 +69,8 @@ class VisibleSubset:
         relative = pose @ self.pose.inverse()
         if relative.rotation_angle_deg() > MAX_ROTATION_DEG:
             return True
-        for camera, depth in zip(self.cameras, self.depths):
-            centre = camera_to_world(camera.cam_from_meta.numpy())[:, 3]
-            if np.linalg.norm(pose.apply(centre) - self.pose.apply(centre)) > MAX_SHIFT * depth:
-                return True
-        return False
+        shifts = np.linalg.norm(pose.apply(self.centres) - self.pose.apply(self.centres), axis=1)
+        return bool(np.any(shifts > MAX_SHIFT * self.depths))
 
     @torch.no_grad()
     def cull(self, pose: Sim3) -> None:

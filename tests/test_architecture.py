@@ -21,8 +21,9 @@ ALLOWED = {
     "initialisers": {"geometry", "splat"},
     "registration": {"geometry", "features", "render", "splat", "initialisers"},
     "viewer": {"geometry", "splat"},
+    "photos": {"geometry", "initialisers", "synthetic"},
     "bench": {"geometry", "features", "render", "splat", "initialisers", "registration", "synthetic"},
-    "scripts": {"geometry", "features", "render", "splat", "initialisers", "registration", "viewer", "bench", "synthetic"},
+    "scripts": {"geometry", "features", "render", "splat", "initialisers", "registration", "viewer", "bench", "synthetic", "photos"},
 }
 """Stage -> the stages it may import (besides itself and the root modules errors.py / atomic.py)."""
 ROOT_MODULES = {"errors", "atomic"}

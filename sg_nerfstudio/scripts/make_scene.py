@@ -3,12 +3,16 @@
     sg-make-scene --preset tiny --output demo_scene
     sg-make-scene --preset default --output scenes/cathedral --seed 3 --occluder-rate 0.5
     sg-make-scene --preset benchmark --output bench            # a suite: bench/<scene>/ for each scene
+    sg-make-scene --from-photos photos/ --cameras cameras/ --output real/fountain   # from real photos
 
 `--preset` picks the starting settings (see `sg_nerfstudio.synthetic.PRESETS`); every other flag
 overrides one of them (`sg-make-scene --preset tiny --help` lists them with the preset's values).
 A suite preset (`sg_nerfstudio.synthetic.generator.SUITES`: `benchmark`, `tiny-benchmark`) writes several
 scenes into `<output>/<scene name>/` plus `<output>/benchmark.json` naming them, the layout `sg-bench`
 reads; it takes only --output and --overwrite.
+`--from-photos PHOTOS` builds a scene from real photographs instead (sg_nerfstudio/photos/scene.py: the
+reference from part of the photos with a pseudo-synthetic look, meta-images from the others, each with its
+own SfM, ground truth from --cameras (Strecha `.camera` files or a COLMAP model) or SfM on all photos).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import tyro
 from rich.console import Console
@@ -25,6 +30,8 @@ from rich.text import Text
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio.atomic import atomic_directory
+from sg_nerfstudio.initialisers import set_colmap_verbosity
+from sg_nerfstudio.photos.scene import RealSceneSettings, build_real_scene
 from sg_nerfstudio.scripts.cli import cli_main
 from sg_nerfstudio.synthetic import PRESETS, SceneConfig, SceneGenerationError, generate_scene
 from sg_nerfstudio.synthetic.generator import SUITES
@@ -48,6 +55,42 @@ class SuiteArgs:
     output: Path
     """Directory to create (holding <scene>/ per scene and benchmark.json); refused if it exists unless --overwrite."""
     overwrite: bool = False
+
+
+@dataclass
+class FromPhotosArgs:
+    """Build a benchmark scene from real photographs (see sg_nerfstudio/photos/scene.py)."""
+
+    from_photos: Path
+    """Folder of JPEG / PNG photos of one landmark (read only)."""
+    output: Path
+    """Scene directory to create (put it inside a benchmark directory for sg-bench); refused if it exists unless --overwrite."""
+    cameras: Optional[Path] = None
+    """Ground-truth cameras: a folder of Strecha `<photo>.camera` files or a COLMAP model; default: SfM on all photos."""
+    scene: RealSceneSettings = RealSceneSettings()
+    overwrite: bool = False
+    verbose: bool = False
+    """Show COLMAP's INFO log."""
+
+
+def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
+    set_colmap_verbosity(args.verbose)
+    with console.status("building the scene") as status:
+        manifest = build_real_scene(args.from_photos, args.output, args.scene, args.cameras, args.overwrite, lambda text: status.update(text))
+    written = [m for m in manifest["meta_images"] if m["written"]]
+    console.print(
+        f"Wrote {args.output}: reference of {len(manifest['reference']['images'])} photos ({manifest['reference']['n_points3D']} "
+        f"triangulated points), meta-images " + ", ".join(
+            f"{m['name']} ({m['n_photos']} photos, ground-truth residual <= {m['gt_residual_rotation_deg_max']:.2f} deg)" for m in written
+        ) + f"; solution: {manifest['solution']}; {manifest['wall_time_s']} s.",
+        soft_wrap=True, markup=False,
+    )
+    for meta in manifest["meta_images"]:
+        if not meta["written"]:
+            console.print(f"Meta-image {meta['name']} was left out: its own SfM formed no model ({meta['why']}).", soft_wrap=True, markup=False)
+    if manifest["left_out"]:
+        console.print(f"Photos the solution could not place (left out): {', '.join(manifest['left_out'])}.", soft_wrap=True, markup=False)
+    return 0
 
 
 def make_suite(name: str, args: SuiteArgs, console: Console) -> int:
@@ -75,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
     pre.add_argument("--preset", default="default")
     known, rest = pre.parse_known_args(argv)
     console = Console(stderr=True)
+    if any(arg == "--from-photos" or arg.startswith("--from-photos=") for arg in argv):
+        photo_args = tyro.cli(FromPhotosArgs, args=argv, prog="sg-make-scene --from-photos")
+        return cli_main(lambda: make_from_photos(photo_args, console))
     if known.preset in SUITES:
         suite_args = tyro.cli(SuiteArgs, args=rest, prog=f"sg-make-scene --preset {known.preset}")
         return cli_main(lambda: make_suite(known.preset, suite_args, console))

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Type, Union
 
+import pycolmap
 import torch
 
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
@@ -26,10 +27,33 @@ from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import FeatureCache, TeacherConfig, build_teacher, extract_all, teacher_feature_dim
 
 PCA_SAMPLE_SIZE = 20000
+MIN_SEED_POINTS = 4
+"""Fewest SfM points the Gaussians can start from (each one's initial scale comes from its 3 nearest neighbours)."""
 
 
 class DatasetInputError(InputError):
     """A dataset the datamanager cannot train on."""
+
+
+def check_seed_points(config: "FeatureDatamanagerConfig") -> None:
+    """Stop with one sentence when the COLMAP model the Gaussians start from has (almost) no 3D points
+    (nerfstudio's colmap dataparser otherwise fails deep inside with a tensor-shape error)."""
+    parser = config.dataparser
+    if not getattr(parser, "load_3D_points", False) or not hasattr(parser, "colmap_path"):
+        return
+    data = Path(parser.data if str(parser.data) not in ("", ".") else config.data or ".")
+    model = data / parser.colmap_path
+    if not ((model / "points3D.bin").is_file() or (model / "points3D.txt").is_file()):
+        return  # the dataparser names the missing file itself
+    try:
+        count = pycolmap.Reconstruction(str(model)).num_points3D()
+    except Exception:
+        return  # the dataparser reports an unreadable model
+    if count < MIN_SEED_POINTS:
+        raise DatasetInputError(
+            f"The COLMAP model {model} has {count} 3D points; sg-feature-splat starts its Gaussians from them and needs "
+            f"at least {MIN_SEED_POINTS} (triangulate the images with known poses, e.g. COLMAP's point_triangulator)."
+        )
 
 
 @dataclass
@@ -52,6 +76,7 @@ class FeatureDatamanager(FullImageDatamanager):
         local_rank: int = 0,
         **kwargs,
     ):
+        check_seed_points(config)
         super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
         if torch.device(device).type == "cpu":
             self.config.cache_images = "gpu"  # i.e. "on the training device": no pinned memory without CUDA

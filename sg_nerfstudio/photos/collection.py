@@ -1,0 +1,97 @@
+"""A folder of photos read the way COLMAP should see them: EXIF orientation applied, RGB, a capped size.
+
+Internet photos come as JPEG or PNG of any size, portrait or landscape (often only through the EXIF
+orientation tag), in colour or grey. `prepare_photos` writes one working copy per photo into a directory
+(the images SfM, training and registration then read, so the COLMAP cameras match their pixels) and fails
+with one sentence on the first photo that cannot be decoded (a truncated JPEG, a file that is no image).
+PIL does the decoding and the EXIF handling (`ImageOps.exif_transpose`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional
+
+from PIL import Image, ImageOps
+
+from sg_nerfstudio.errors import InputError
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+class PhotoFolderError(InputError):
+    """A photo folder that is missing, empty or holds a photo that cannot be decoded."""
+
+
+@dataclass(frozen=True)
+class PreparedPhoto:
+    """One working copy: its name (the COLMAP image name), the source file and both sizes (width, height)."""
+
+    name: str
+    source: Path
+    source_size: tuple[int, int]
+    size: tuple[int, int]
+
+
+def list_photos(folder: Path) -> list[Path]:
+    """The JPEG / PNG files directly inside `folder`, sorted by name."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise PhotoFolderError(f"Photo folder {folder} does not exist; expected a directory of JPEG or PNG photos.")
+    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+    if not photos:
+        raise PhotoFolderError(f"Photo folder {folder} holds no JPEG or PNG photo; expected at least 3.")
+    return photos
+
+
+def load_photo(path: Path) -> Image.Image:
+    """The photo as an upright RGB PIL image (fully decoded, so a truncated file fails here)."""
+    try:
+        with Image.open(path) as handle:
+            handle.load()
+            upright = ImageOps.exif_transpose(handle)
+            return upright.convert("RGB")
+    except Exception as error:
+        raise PhotoFolderError(
+            f"Photo {path} could not be decoded ({type(error).__name__}: {error}); expected a complete JPEG or PNG "
+            "(remove or replace the file)."
+        ) from None
+
+
+def capped_size(size: tuple[int, int], max_size: Optional[int]) -> tuple[int, int]:
+    """(width, height) scaled down so that the long side is at most `max_size` (never up)."""
+    width, height = size
+    if not max_size or max(width, height) <= max_size:
+        return width, height
+    factor = max_size / max(width, height)
+    return max(1, round(width * factor)), max(1, round(height * factor))
+
+
+def prepare_photos(
+    photos: list[Path], output: Path, max_size: Optional[int], on_photo: Optional[Callable[[], None]] = None,
+    transform: Optional[Callable[[str, Image.Image], Image.Image]] = None,
+) -> list[PreparedPhoto]:
+    """Write an upright RGB copy of each photo, long side capped at `max_size`, into `output`.
+
+    Names keep the source file name (JPEG stays JPEG at quality 95, PNG stays PNG). `transform(name, image)`
+    may change each working image after resizing (e.g. the benchmark builder's in-the-wild look).
+    """
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    names = [p.name for p in photos]
+    if len(set(n.lower() for n in names)) != len(names):
+        raise PhotoFolderError(f"Photo names must be unique regardless of case, got duplicates among {len(names)} photos.")
+    prepared = []
+    for path in photos:
+        image = load_photo(path)
+        size = capped_size(image.size, max_size)
+        working = image if size == image.size else image.resize(size, Image.Resampling.LANCZOS)
+        if transform is not None:
+            working = transform(path.name, working)
+        options = {"quality": 95} if path.suffix.lower() in (".jpg", ".jpeg") else {}
+        working.save(output / path.name, **options)
+        prepared.append(PreparedPhoto(path.name, path, image.size, size))
+        if on_photo is not None:
+            on_photo()
+    return prepared

@@ -1,0 +1,336 @@
+"""A benchmark scene from real photographs, in the layout `sg-bench` reads (bench/layout.py).
+
+The paper evaluates on WikiEarth: a reference of pseudo-synthetic (Google Earth) renders covering the
+landmark, and meta-images reconstructed by SfM from Internet photos, with ground truth. From one photo set
+with cameras this builds the same kind of scene:
+
+1. the solution: every photo's camera in one world frame, from given cameras (Strecha `.camera` files or a
+   COLMAP model, `cameras=`) or else from SfM on all photos (photos it cannot place are left out, reported);
+   scaled so that the median distance of the reference cameras to their centroid is 1 (the scene unit of
+   the synthetic scenes, so thresholds and errors mean the same);
+2. the split: photos ordered along the capture path (first principal axis of the camera centres); every
+   `reference_every`-th photo (and the last) is the reference, the others form meta-images of `meta_size`
+   consecutive photos (the last window is moved back to stay full, so two meta-images can share a photo);
+3. the reference: its photos at `reference_size` with a pseudo-synthetic look (edge-preserving smoothing
+   that removes fine texture, grey-world colour), its cameras from the solution, and a SIFT point cloud
+   triangulated with those poses fixed (`initialisers.reference_cloud`) for the splat's initialisation;
+4. each meta-image: its photos at `photo_size` with a seeded in-the-wild look (exposure, white balance,
+   gamma, blur, noise, JPEG quality; occluders on a share of photos: `synthetic.appearance`), reconstructed
+   on its own by SfM (its own frame, scale, intrinsics and errors: `photos.sfm`), and the ground truth
+   meta -> reference as the Sim(3) that maps its SfM cameras onto the solution's (`geometry.alignment`),
+   with the per-camera residual recorded.
+
+Written atomically; `scene.json` records the settings, the split, what was left out and why.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Optional
+
+import cv2
+import numpy as np
+import pycolmap
+from PIL import Image
+
+from sg_nerfstudio.atomic import atomic_directory
+from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.geometry.alignment import align_cameras, camera_centres
+from sg_nerfstudio.initialisers.features import MatchSettings, SiftExtractor, SiftSettings
+from sg_nerfstudio.initialisers.pipeline import silent_progress
+from sg_nerfstudio.initialisers.reference_cloud import PairingSettings, ReferenceSource, build_reference_cloud
+from sg_nerfstudio.photos.collection import capped_size, list_photos, prepare_photos
+from sg_nerfstudio.photos.meta_images import write_model
+from sg_nerfstudio.photos.sfm import SfmSettings, reconstruct
+from sg_nerfstudio.photos.strecha import read_strecha_cameras
+from sg_nerfstudio.synthetic.appearance import apply_camera_effects, draw_occluders, random_look
+
+Array = np.ndarray
+Stage = Callable[[str], None]
+
+
+class RealSceneError(InputError):
+    """Photos or cameras that cannot make a benchmark scene."""
+
+
+@dataclass(frozen=True)
+class RealSceneSettings:
+    """How a photo set becomes a benchmark scene (see the module docstring)."""
+
+    reference_every: int = 2
+    """Every k-th photo along the path (and the last) goes to the reference."""
+    meta_size: int = 3
+    """Photos per meta-image (>= 3)."""
+    reference_size: int = 480
+    """Long side of the reference images (pixels): what the reference is trained on."""
+    photo_size: int = 640
+    """Long side of the meta-image photos (pixels)."""
+    reference_smoothing: float = 0.5
+    """Strength of the pseudo-synthetic look of the reference (0 = the photos as they are)."""
+    appearance_strength: float = 1.0
+    """0 = meta photos as they are, 1 = strong in-the-wild variation (exposure, white balance, gamma, blur, noise)."""
+    occluder_rate: float = 0.3
+    """Share of meta photos with transient occluders."""
+    occluder_coverage: tuple[float, float] = (0.1, 0.3)
+    """Range of the image share an occluder hides."""
+    jpeg_quality: tuple[int, int] = (60, 95)
+    """Range of the meta photos' JPEG quality."""
+    min_reference_points: int = 100
+    """Fewer triangulated reference points than this cannot initialise a splat: refused."""
+    seed: int = 0
+
+
+@dataclass
+class SolvedPhoto:
+    """One photo in the solution: its camera at the working size and its pose in the reference world."""
+
+    name: str
+    camera: pycolmap.Camera
+    cam_from_world: Array  # [3, 4] OpenCV
+
+
+def build_real_scene(
+    photos: Path, output: Path, settings: RealSceneSettings, cameras: Optional[Path] = None,
+    overwrite: bool = False, stage: Optional[Stage] = None,
+) -> dict:
+    """Write the scene (module docstring) into `output`; returns the manifest (scene.json)."""
+    stage = stage or (lambda _: None)
+    started = time.perf_counter()
+    if settings.meta_size < 3:
+        raise RealSceneError(f"meta_size must be at least 3 photos (a meta-image is an SfM model), got {settings.meta_size}.")
+    if settings.reference_every < 2:
+        raise RealSceneError(f"reference_every must be at least 2 (1 would leave no photo for meta-images), got {settings.reference_every}.")
+    sources = list_photos(photos)
+    if Path(output).exists() and not overwrite:
+        raise RealSceneError(f"Output directory {output} already exists; pass --overwrite to replace it.")
+    with atomic_directory(output, overwrite=overwrite) as root:
+        work = root / "work"
+        stage(f"reading {len(sources)} photos")
+        prepared = prepare_photos(sources, work / "clean", settings.photo_size)
+        solution, solved_by = solve(prepared, work, cameras, settings, stage)
+        ordered = order_along_path(solution)
+        reference_names, meta_windows = split_photos(ordered, settings.reference_every, settings.meta_size)
+        unit = scene_unit(np.stack([solution[n].cam_from_world for n in reference_names]))
+        for photo in solution.values():
+            photo.cam_from_world = np.concatenate([photo.cam_from_world[:, :3], photo.cam_from_world[:, 3:] * unit], axis=1)
+        stage("reference: pseudo-synthetic images and triangulation")
+        reference = write_reference(root / "reference", work, [solution[n] for n in reference_names], settings)
+        rng = np.random.default_rng(settings.seed)
+        metas = []
+        for window in meta_windows:
+            name = f"{Path(window[0]).stem}-{Path(window[-1]).stem}"
+            stage(f"meta-image {name}: in-the-wild photos and SfM")
+            metas.append(write_meta(root / "meta" / name, work / name, [solution[n] for n in window], settings, rng))
+        if not any(m["written"] for m in metas):
+            raise RealSceneError(
+                f"No meta-image of {photos} could be reconstructed on its own ({metas[0]['why']}); expected overlapping photos."
+            )
+        manifest = {
+            "generator": "sg_nerfstudio.photos.scene",
+            "photos": str(Path(photos).resolve()),
+            "cameras": str(Path(cameras).resolve()) if cameras else None,
+            "solution": solved_by,
+            "settings": asdict(settings),
+            "scene_unit": "median distance of the reference cameras to their centroid = 1",
+            "source_units_per_scene_unit": 1.0 / unit,
+            "left_out": sorted(set(p.name for p in prepared) - set(solution)),
+            "reference": reference,
+            "meta_images": metas,
+        }
+        shutil.rmtree(work)
+        manifest["wall_time_s"] = round(time.perf_counter() - started, 2)
+        (root / "scene.json").write_text(json.dumps(manifest, indent=2, default=float))
+    return manifest
+
+
+# ------------------------------------------------------------------------------------------- solution
+
+
+def solve(prepared, work: Path, cameras: Optional[Path], settings: RealSceneSettings, stage: Stage) -> tuple[dict[str, SolvedPhoto], str]:
+    """Every photo's camera (at its working size) and pose in one world frame, and where they came from."""
+    names = [p.name for p in prepared]
+    sizes = {p.name: p.size for p in prepared}
+    if cameras is None:
+        stage("solution: SfM on all photos")
+        result = reconstruct(work / "clean", names, work / "solution", SfmSettings(seed=settings.seed))
+        if not result.models:
+            raise RealSceneError(f"SfM on all {len(names)} photos formed no model; expected overlapping photos of one place (or give --cameras).")
+        model = result.models[0]
+        solved = {
+            model.images[i].name: SolvedPhoto(model.images[i].name, model.cameras[model.images[i].camera_id], model.images[i].cam_from_world().matrix())
+            for i in model.reg_image_ids()
+        }
+        return solved, f"pycolmap SfM on all photos ({len(solved)} of {len(names)} registered)"
+    cameras = Path(cameras)
+    if (cameras / "images.bin").is_file() or (cameras / "images.txt").is_file():
+        return _from_colmap(cameras, names, sizes), f"COLMAP model {cameras}"
+    strecha = read_strecha_cameras(cameras, names)
+    solved = {}
+    for name, camera in strecha.items():
+        width, height = sizes[name]
+        if abs(camera.width / camera.height - width / height) > 0.01:
+            raise RealSceneError(f"Camera of {name} is {camera.width}x{camera.height} but the photo is {width}x{height} after EXIF rotation; expected the same aspect ratio.")
+        solved[name] = SolvedPhoto(name, camera.colmap_camera(width, height), camera.cam_from_world())
+    return solved, f"Strecha cameras {cameras}"
+
+
+def _from_colmap(path: Path, names: list[str], sizes: dict) -> dict[str, SolvedPhoto]:
+    try:
+        model = pycolmap.Reconstruction(str(path))
+    except Exception as error:
+        raise RealSceneError(f"COLMAP model {path} could not be read ({error}).") from None
+    solved = {}
+    for image_id in model.reg_image_ids():
+        image = model.images[image_id]
+        if image.name in sizes:
+            camera = pycolmap.Camera(model.cameras[image.camera_id].todict())
+            camera.rescale(*sizes[image.name])
+            solved[image.name] = SolvedPhoto(image.name, camera, image.cam_from_world().matrix())
+    if len(solved) < 3:
+        raise RealSceneError(f"COLMAP model {path} places {len(solved)} of the photos; expected most of them (images named as the photo files).")
+    return solved
+
+
+def order_along_path(solution: dict[str, SolvedPhoto]) -> list[str]:
+    """Photo names sorted along the first principal axis of their camera centres (ties: by name)."""
+    names = sorted(solution)
+    centres = camera_centres(np.stack([solution[n].cam_from_world for n in names]))
+    centred = centres - centres.mean(0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    position = centred @ axis
+    if position[0] > position[-1]:  # keep the direction of the file names where they follow the path
+        position = -position
+    return [names[i] for i in np.lexsort((np.arange(len(names)), np.round(position, 9)))]
+
+
+def split_photos(ordered: list[str], every: int, meta_size: int) -> tuple[list[str], list[list[str]]]:
+    """Reference photos and meta-image windows along the path (module docstring, step 2)."""
+    reference = ordered[::every]
+    if ordered[-1] not in reference:
+        reference.append(ordered[-1])
+    rest = [name for name in ordered if name not in reference]
+    if len(reference) < 3 or len(rest) < meta_size:
+        raise RealSceneError(
+            f"{len(ordered)} placed photos split into {len(reference)} reference and {len(rest)} meta-image photos; expected at "
+            f"least 3 reference photos and {meta_size} for a meta-image (use more photos, or a smaller --meta-size)."
+        )
+    windows = []
+    for start in range(0, len(rest), meta_size):
+        start = min(start, len(rest) - meta_size)
+        window = rest[start:start + meta_size]
+        if not windows or window != windows[-1]:
+            windows.append(window)
+    return reference, windows
+
+
+def scene_unit(cam_from_world: Array) -> float:
+    """Factor that makes the median distance of these cameras [N, 3, 4] to their centroid 1."""
+    centres = camera_centres(cam_from_world)
+    spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
+    if spread <= 0:
+        raise RealSceneError("The reference cameras all sit at one point; expected a capture that moves around the landmark.")
+    return 1.0 / spread
+
+
+# ------------------------------------------------------------------------------------------ reference
+
+
+def pseudo_synthetic(image: Image.Image, strength: float) -> Image.Image:
+    """The flat, texture-poor look of a mesh render: edge-preserving smoothing and grey-world colour."""
+    rgb = np.asarray(image, dtype=np.float32) / 255.0
+    rgb = rgb * (rgb.mean() / np.maximum(rgb.reshape(-1, 3).mean(0), 1e-3))[None, None]
+    out = np.clip(rgb * 255.0, 0, 255).astype(np.uint8)
+    if strength > 0:
+        sigma_s = min(200.0, 0.05 * max(image.size) * strength)
+        bgr = cv2.edgePreservingFilter(cv2.cvtColor(out, cv2.COLOR_RGB2BGR), flags=cv2.RECURS_FILTER, sigma_s=sigma_s, sigma_r=min(1.0, 0.3 * strength))
+        out = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return Image.fromarray(out)
+
+
+def write_reference(directory: Path, work: Path, photos: list[SolvedPhoto], settings: RealSceneSettings) -> dict:
+    """reference/images/*.png and reference/colmap/sparse/0 (solution poses, triangulated SIFT points)."""
+    images = directory / "images"
+    images.mkdir(parents=True)
+    model = pycolmap.Reconstruction()
+    for index, photo in enumerate(photos, start=1):
+        clean = Image.open(work / "clean" / photo.name)
+        size = capped_size(clean.size, settings.reference_size)
+        name = f"{Path(photo.name).stem}.png"
+        pseudo_synthetic(clean.resize(size, Image.Resampling.LANCZOS), settings.reference_smoothing).save(images / name)
+        camera = pycolmap.Camera(photo.camera.todict())
+        camera.rescale(*size)
+        camera.camera_id = index
+        model.add_camera_with_trivial_rig(camera)
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(photo.cam_from_world[:, :3]), photo.cam_from_world[:, 3])
+        model.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=index, image_id=index), pose)
+    (work / "reference_poses").mkdir()
+    model.write_binary(str(work / "reference_poses"))
+    cloud = build_reference_cloud(
+        ReferenceSource(work / "reference_poses", images), SiftExtractor(SiftSettings()), MatchSettings(), PairingSettings(),
+        work / "reference_cloud", silent_progress,
+    )
+    points = cloud.reconstruction.num_points3D()
+    if points < settings.min_reference_points:
+        raise RealSceneError(
+            f"Triangulating the {len(photos)} reference photos gave {points} 3D points; expected at least "
+            f"{settings.min_reference_points} to initialise the splat (photos with more overlap or texture)."
+        )
+    (directory / "colmap" / "sparse" / "0").mkdir(parents=True)
+    cloud.reconstruction.write_binary(str(directory / "colmap" / "sparse" / "0"))
+    return {"path": "reference", "images": [f"{Path(p.name).stem}.png" for p in photos], "n_points3D": int(points)}
+
+
+# ---------------------------------------------------------------------------------------- meta-images
+
+
+def in_the_wild(image: Image.Image, settings: RealSceneSettings, rng: np.random.Generator) -> tuple[Image.Image, dict]:
+    """A photo with a random look (and maybe occluders) applied in linear light; returns it and what was done."""
+    linear = (np.asarray(image, dtype=np.float64) / 255.0) ** 2.2
+    coverage = 0.0
+    if rng.random() < settings.occluder_rate:
+        linear, coverage = draw_occluders(linear, rng.uniform(*settings.occluder_coverage), rng)
+    look = random_look(settings.appearance_strength, rng)
+    styled = apply_camera_effects(linear, look, rng) ** (1 / 2.2)
+    record = {"occluded_fraction": round(coverage, 4), "exposure": round(look.exposure, 4), "gamma": round(look.gamma, 4)}
+    return Image.fromarray(np.clip(styled * 255 + 0.5, 0, 255).astype(np.uint8)), record
+
+
+def write_meta(directory: Path, work: Path, photos: list[SolvedPhoto], settings: RealSceneSettings, rng: np.random.Generator) -> dict:
+    """One meta-image: styled photos, their own SfM, gt_transform.json; a record of what happened."""
+    styled = work / "images"
+    styled.mkdir(parents=True)
+    looks = {}
+    for photo in photos:
+        image, looks[photo.name] = in_the_wild(Image.open(work.parent / "clean" / photo.name), settings, rng)
+        quality = int(rng.integers(settings.jpeg_quality[0], settings.jpeg_quality[1] + 1))
+        looks[photo.name]["jpeg_quality"] = quality
+        image.save(styled / photo.name, format="JPEG", quality=quality)
+    names = [p.name for p in photos]
+    record = {"name": directory.name, "photos": names, "looks": looks, "written": False}
+    result = reconstruct(styled, names, work / "sfm", SfmSettings(min_model_size=3, seed=settings.seed))
+    if not result.models:
+        record["why"] = "; ".join(f"{n}: {r}" for n, r in result.unregistered())
+        return record
+    model = result.models[0]
+    ids = sorted(model.reg_image_ids(), key=lambda i: model.images[i].name)
+    by_name = {p.name: p for p in photos}
+    source = np.stack([model.images[i].cam_from_world().matrix() for i in ids])
+    target = np.stack([by_name[model.images[i].name].cam_from_world for i in ids])
+    alignment = align_cameras(source, target)
+    write_model(model, styled, directory)
+    truth = alignment.transform.as_record() | {
+        "residual_rotation_deg": alignment.rotation_residual_deg.round(4).tolist(),
+        "residual_centre": alignment.centre_residual.round(5).tolist(),
+    }
+    (directory / "gt_transform.json").write_text(json.dumps(truth, indent=2))
+    record.update(
+        written=True, path=f"meta/{directory.name}", n_photos=len(ids), n_points3D=int(model.num_points3D()),
+        left_out=[{"photo": n, "reason": r} for n, r in result.unregistered()],
+        gt_residual_rotation_deg_max=float(alignment.rotation_residual_deg.max()),
+        gt_residual_centre_max=float(alignment.centre_residual.max()),
+    )
+    return record

@@ -1,0 +1,229 @@
+"""Real-photo path: photo folder -> meta-images (pycolmap SfM), camera alignment, Strecha cameras, the
+real-photo scene builder, and one sentence for each bad input.
+
+The photos are rendered by the synthetic generator at a size SIFT can use (320x240, no in-the-wild look),
+so the suite needs nothing outside the repository.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+
+from sg_nerfstudio.geometry.alignment import AlignmentError, align_cameras
+from sg_nerfstudio.geometry.meta_image import load_meta_image
+from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.photos.collection import PhotoFolderError, prepare_photos
+from sg_nerfstudio.photos.scene import RealSceneError, RealSceneSettings, build_real_scene, split_photos
+from sg_nerfstudio.photos.strecha import CameraFileError, read_strecha_camera
+from sg_nerfstudio.scripts.make_scene import main as make_scene_main
+from sg_nerfstudio.scripts.meta_images import main as meta_images_main
+from sg_nerfstudio.synthetic import SceneConfig, generate_scene
+from sg_nerfstudio.synthetic.building import BuildingConfig
+
+
+@pytest.fixture(scope="module")
+def photo_scene(tmp_path_factory) -> Path:
+    """A synthetic scene whose 8 front photos (320x240, plain look) overlap like a walk along a facade."""
+    config = SceneConfig(
+        building=BuildingConfig(n_gaussians=4000, window_cols=4), reference_size=(48, 36), n_ring=6, n_aerial=0,
+        meta_images=("front:8",), photo_size=(320, 240), appearance_strength=0.0, occluder_rate=0.0, distortion=0.0,
+        n_sparse_points=800,
+    )
+    output = tmp_path_factory.mktemp("photos") / "scene"
+    generate_scene(config, output)
+    return output
+
+
+@pytest.fixture(scope="module")
+def photos(photo_scene) -> Path:
+    return photo_scene / "meta" / "front" / "images"
+
+
+def noise_photo(path: Path, seed: int, size=(320, 240)) -> None:
+    rng = np.random.default_rng(seed)
+    Image.fromarray(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8)).save(path)
+
+
+def test_meta_images_from_a_photo_folder(photos, tmp_path, capsys):
+    folder = tmp_path / "photos"
+    shutil.copytree(photos, folder)
+    noise_photo(folder / "zz-noise.png", 0)  # a photo of nothing: reported, not registered
+    before = sorted((p.name, p.stat().st_size) for p in folder.iterdir())
+    output = tmp_path / "metas"
+    assert meta_images_main([str(folder), "--output", str(output), "--threads", "1"]) == 0
+    assert sorted((p.name, p.stat().st_size) for p in folder.iterdir()) == before  # the input is only read
+    record = json.loads((output / "meta_images.json").read_text())
+    assert record["pairing"] == "exhaustive"
+    assert [m["photos"] for m in record["models"]] == [8]
+    assert [u["photo"] for u in record["unregistered"]] == ["zz-noise.png"]
+    meta = load_meta_image(output / "meta-00")  # the layout ns-register-meta reads
+    assert len(meta.photos) == 8
+    err = capsys.readouterr().err
+    assert "meta-00" in err and "zz-noise.png" in err
+
+
+def test_retrieval_pairs_above_the_exhaustive_limit(photos, tmp_path):
+    output = tmp_path / "metas"
+    assert meta_images_main([str(photos), "--output", str(output), "--threads", "1", "--exhaustive-limit", "4", "--retrieval-neighbours", "3"]) == 0
+    record = json.loads((output / "meta_images.json").read_text())
+    assert record["pairing"].startswith("retrieval (3 most similar")
+    assert sum(m["photos"] for m in record["models"]) >= 6
+
+
+def test_prepare_photos_applies_exif_grey_and_cap(tmp_path):
+    source = tmp_path / "in"
+    source.mkdir()
+    wide = Image.fromarray(np.tile(np.arange(400, dtype=np.uint8)[None, :, None], (200, 1, 3)))
+    exif = wide.getexif()
+    exif[0x0112] = 6  # orientation: rotate 90 degrees clockwise to view
+    wide.save(source / "rotated.jpg", exif=exif)
+    Image.fromarray(np.zeros((50, 80), np.uint8)).save(source / "grey.png")
+    prepared = prepare_photos(sorted(source.iterdir()), tmp_path / "out", max_size=100)
+    by_name = {p.name: p for p in prepared}
+    assert by_name["rotated.jpg"].size == (50, 100)  # upright (portrait) and capped at 100
+    assert by_name["grey.png"].size == (80, 50)  # small photos are not enlarged
+    assert Image.open(tmp_path / "out" / "grey.png").mode == "RGB"
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "truncated", "no-model"])
+def test_bad_photo_folders_are_one_sentence(case, tmp_path, capsys):
+    folder = tmp_path / "photos"
+    if case != "missing":
+        folder.mkdir()
+    if case == "truncated":
+        noise_photo(folder / "a.jpg", 0)
+        data = (folder / "a.jpg").read_bytes()
+        (folder / "a.jpg").write_bytes(data[: len(data) // 2])
+    if case == "no-model":
+        for seed in range(3):
+            noise_photo(folder / f"noise{seed}.png", seed)
+    output = tmp_path / "metas"
+    assert meta_images_main([str(folder), "--output", str(output), "--threads", "1"]) == 1
+    err = capsys.readouterr().err
+    expected = {"missing": "does not exist", "empty": "holds no JPEG or PNG", "truncated": "a.jpg could not be decoded",
+                "no-model": "formed no model"}[case]
+    assert expected in err and "Traceback" not in err
+    assert not output.exists() and not list(tmp_path.glob(".metas*"))
+
+
+def random_poses(rng, count: int, collinear: bool) -> np.ndarray:
+    poses = []
+    for index in range(count):
+        rotation = Sim3.random(rng, 20.0, 0.0, 0.0).rotation
+        centre = np.array([index, 0.0, 0.0]) if collinear else rng.normal(size=3)
+        poses.append(np.concatenate([rotation, (-rotation @ centre)[:, None]], axis=1))
+    return np.stack(poses)
+
+
+@pytest.mark.parametrize("collinear", [False, True])
+def test_align_cameras_recovers_a_similarity(collinear):
+    rng = np.random.default_rng(3)
+    source = random_poses(rng, 3, collinear)
+    truth = Sim3.random(rng, 120.0, 5.0, 0.8)
+    target = np.stack([truth.move_camera(p) for p in source])
+    aligned = align_cameras(source, target)
+    np.testing.assert_allclose(np.asarray(aligned.transform), np.asarray(truth), atol=1e-9)
+    assert aligned.rotation_residual_deg.max() < 1e-4 and aligned.centre_residual.max() < 1e-9
+    with pytest.raises(AlignmentError, match="distinct centres"):
+        align_cameras(source[:1], target[:1])
+
+
+def test_strecha_camera_file(tmp_path):
+    rotation_c2w = Sim3.random(np.random.default_rng(1), 90.0, 0.0, 0.0).rotation
+    centre = np.array([1.0, -2.0, 3.0])
+    lines = ["2000 0 1500", "0 2000 1000", "0 0 1", "0 0 0", *[" ".join(map(str, row)) for row in rotation_c2w], "1 -2 3", "3000 2000"]
+    path = tmp_path / "a.jpg.camera"
+    path.write_text("\n".join(lines) + "\n")
+    camera = read_strecha_camera(path)
+    point = np.array([0.5, 0.2, 9.0])
+    pose = camera.cam_from_world()
+    np.testing.assert_allclose(pose[:, :3] @ point + pose[:, 3], rotation_c2w.T @ (point - centre), atol=1e-12)
+    colmap = camera.colmap_camera(300, 200)
+    np.testing.assert_allclose(colmap.params, [200, 200, 150, 100])
+    path.write_text("\n".join(lines[:5]))
+    with pytest.raises(CameraFileError, match="Strecha format"):
+        read_strecha_camera(path)
+
+
+def test_split_along_the_path():
+    names = [f"{i:02d}" for i in range(11)]
+    reference, metas = split_photos(names, 2, 3)
+    assert reference == ["00", "02", "04", "06", "08", "10"]
+    assert metas == [["01", "03", "05"], ["05", "07", "09"]]
+    with pytest.raises(RealSceneError, match="at least 3 reference photos"):
+        split_photos(names[:4], 2, 3)
+
+
+def colmap_cameras(scene: Path, output: Path) -> Path:
+    """The generator's true cameras of the front photos as a COLMAP model (the --cameras input)."""
+    record = json.loads((scene / "scene.json").read_text())["meta_images"][0]["photos"]
+    meta = pycolmap.Reconstruction(str(scene / "meta" / "front" / "sparse" / "0"))
+    model = pycolmap.Reconstruction()
+    for index, photo in enumerate(record, start=1):
+        image = next(im for im in meta.images.values() if im.name == photo["name"])
+        camera = pycolmap.Camera(meta.cameras[image.camera_id].todict())
+        camera.camera_id = index
+        model.add_camera_with_trivial_rig(camera)
+        pose = np.array(photo["cam_from_world_reference"])[:3]
+        model.add_image_with_trivial_frame(pycolmap.Image(name=photo["name"], camera_id=index, image_id=index),
+                                           pycolmap.Rigid3d(pycolmap.Rotation3d(pose[:, :3]), pose[:, 3]))
+    output.mkdir()
+    model.write_binary(str(output))
+    return output
+
+
+def test_real_scene_builder_writes_the_bench_layout(photo_scene, photos, tmp_path):
+    from sg_nerfstudio.bench.layout import read_benchmark
+
+    cameras = colmap_cameras(photo_scene, tmp_path / "cameras")
+    settings = RealSceneSettings(
+        reference_every=3, meta_size=4, reference_size=320, photo_size=320, appearance_strength=0.3, occluder_rate=0.0, min_reference_points=50,
+    )
+    output = tmp_path / "bench" / "scene"
+    manifest = build_real_scene(photos, output, settings, cameras)
+    assert manifest["solution"].startswith("COLMAP model")
+    (scene,) = read_benchmark(tmp_path / "bench")
+    assert len(scene.metas) == 1 and len(manifest["reference"]["images"]) == 4
+    for meta in manifest["meta_images"]:
+        assert meta["written"], meta
+        # the SfM cameras of the meta-image, moved by the ground truth, are the given cameras to SfM precision
+        assert meta["gt_residual_rotation_deg_max"] < 1.0
+    truth = scene.metas[0].ground_truth
+    assert 0 < truth.scale and np.isfinite(np.asarray(truth)).all()
+    assert not (output / "work").exists()
+
+
+def test_real_scene_bad_inputs(photos, tmp_path, capsys):
+    output = tmp_path / "scene"
+    cameras = tmp_path / "cameras"
+    cameras.mkdir()
+    assert make_scene_main(["--from-photos", str(photos), "--cameras", str(cameras), "--output", str(output)]) == 1
+    assert "has no" in capsys.readouterr().err and not output.exists()
+    settings = RealSceneSettings(reference_size=320, photo_size=320, min_reference_points=10**6)
+    with pytest.raises(RealSceneError, match="to initialise the splat"):
+        build_real_scene(photos, output, settings)
+    assert not output.exists() and not list(tmp_path.glob(".scene*"))
+
+
+def test_a_reference_without_3d_points_is_one_sentence(tiny_scene, tmp_path):
+    from sg_nerfstudio.features import TeacherConfig
+    from sg_nerfstudio.splat.datamanager import DatasetInputError
+    from sg_nerfstudio.splat.training import cpu_config, train
+
+    reference = tmp_path / "reference"
+    shutil.copytree(tiny_scene / "reference", reference)
+    model_dir = reference / "colmap" / "sparse" / "0"
+    model = pycolmap.Reconstruction(str(model_dir))
+    for point_id in list(model.points3D):
+        model.delete_point3D(point_id)
+    model.write_binary(str(model_dir))
+    config = cpu_config(reference, tmp_path / "runs", 2, TeacherConfig(name="offline", input_size=64, cache_dir=tmp_path / "cache"))
+    with pytest.raises(DatasetInputError, match="has 0 3D points"):
+        train(config)

@@ -242,3 +242,25 @@ def test_colmap_info_log_shows_only_when_verbose(capfd):
         set_colmap_verbosity(False)
     err = capfd.readouterr().err
     assert "sg-probe-quiet" not in err and "sg-probe-warning" in err and "sg-probe-verbose" in err
+
+
+def test_pose_similarity_for_few_collinear_photos():
+    """Three photos along one line (their centres leave the roll about the line free) and one wrong PnP pose:
+    the pose-based similarity recovers the transform and flags the wrong photo."""
+    from sg_nerfstudio.geometry.sim3 import Sim3
+    from sg_nerfstudio.initialisers.estimate import centres_degenerate, similarity_from_poses
+
+    rng = np.random.default_rng(4)
+    poses = []
+    for index in range(4):
+        rotation = Sim3.random(rng, 10.0, 0.0, 0.0).rotation
+        centre = np.array([float(index), 0.01 * index**2, 0.0])
+        poses.append(np.concatenate([rotation, (-rotation @ centre)[:, None]], axis=1))
+    cam_from_meta = np.stack(poses)
+    truth = Sim3.random(rng, 90.0, 3.0, 0.5)
+    cam_from_reference = np.stack([truth.move_camera(p) for p in cam_from_meta])
+    cam_from_reference[3] = Sim3.random(rng, 30.0, 0.0, 0.0).move_camera(cam_from_reference[3])  # a wrong registration
+    assert centres_degenerate(np.stack([-p[:, :3].T @ p[:, 3] for p in cam_from_meta]))
+    matrix, inliers = similarity_from_poses(cam_from_meta, cam_from_reference, max_error=0.05)
+    assert inliers.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(matrix, np.asarray(truth), atol=1e-9)

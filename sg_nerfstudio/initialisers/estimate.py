@@ -16,6 +16,7 @@ from typing import Optional
 import numpy as np
 import pycolmap
 
+from sg_nerfstudio.geometry.alignment import AlignmentError, align_cameras
 from sg_nerfstudio.geometry.sim3 import Sim3
 
 Array = np.ndarray
@@ -117,6 +118,62 @@ def similarity_from_centres(meta_centres: Array, reference_centres: Array, max_e
     if inliers.sum() < 3 or not np.isfinite(matrix).all() or similarity.scale <= 0:
         return None
     return matrix, inliers
+
+
+def centres_degenerate(centres: Array, ratio: float = 0.2) -> bool:
+    """Whether camera centres [P, 3] are (nearly) collinear, or fewer than 3: then they do not fix the rotation
+    about their line (a walk along one facade; every 3-photo meta-image taken from one path)."""
+    if len(centres) < 3:
+        return True
+    singular = np.linalg.svd(centres - centres.mean(0), compute_uv=False)
+    return bool(singular[1] < ratio * max(singular[0], 1e-12))
+
+
+def similarity_from_poses(
+    cam_from_meta: Array, cam_from_reference: Array, max_error: float, max_rotation_deg: float = 5.0,
+) -> Optional[tuple[Array, Array]]:
+    """Robust Sim(3) meta -> reference from corresponding camera *poses* (orientation and centre).
+
+    For centres that are (nearly) collinear, where the centres alone leave the rotation about their line free:
+    every pair of photos proposes the similarity of `geometry.alignment.align_cameras` (rotation from the two
+    orientations, scale and translation from the two centres); a photo agrees when its moved camera is within
+    `max_error` (reference units) and `max_rotation_deg` of its registered pose; the hypothesis most photos
+    agree with (ties: smaller residual) is refitted on them.
+
+    Args:
+        cam_from_meta, cam_from_reference: [P, 3, 4] world-to-camera poses of the same photos, P >= 2.
+
+    Returns:
+        (T [4, 4], inlier mask [P]) or None when no pair gives a similarity.
+    """
+    best = None
+    count = len(cam_from_meta)
+    for a in range(count):
+        for b in range(a + 1, count):
+            try:
+                hypothesis = align_cameras(cam_from_meta[[a, b]], cam_from_reference[[a, b]]).transform
+                scored = align_cameras_residuals(hypothesis, cam_from_meta, cam_from_reference)
+            except AlignmentError:
+                continue
+            inliers = (scored[1] < max_error) & (scored[0] < max_rotation_deg)
+            key = (int(inliers.sum()), -float(scored[1][inliers].sum()))
+            if inliers.sum() >= 2 and (best is None or key > best[0]):
+                best = (key, inliers)
+    if best is None:
+        return None
+    inliers = best[1]
+    refit = align_cameras(cam_from_meta[inliers], cam_from_reference[inliers]).transform
+    rotation_residual, centre_residual = align_cameras_residuals(refit, cam_from_meta, cam_from_reference)
+    inliers = (centre_residual < max_error) & (rotation_residual < max_rotation_deg)
+    return np.asarray(refit), inliers
+
+
+def align_cameras_residuals(transform: Sim3, cam_from_meta: Array, cam_from_reference: Array) -> tuple[Array, Array]:
+    """[P] rotation (degrees) and centre (reference units) residuals of the meta cameras moved by `transform`."""
+    moved = np.stack([transform.move_camera(pose) for pose in cam_from_meta])
+    rotation = np.array([Sim3.from_parts(1.0, m[:, :3] @ r[:, :3].T, np.zeros(3)).rotation_angle_deg() for m, r in zip(moved, cam_from_reference)])
+    centres = np.linalg.norm(np.stack([centre_of(m) - centre_of(r) for m, r in zip(moved, cam_from_reference)]), axis=1)
+    return rotation, centres
 
 
 @dataclass(frozen=True)

@@ -31,9 +31,11 @@ from sg_nerfstudio.initialisers.estimate import (
     Observations,
     PhotoPose,
     centre_of,
+    centres_degenerate,
     generalized_similarity,
     register_photo,
     similarity_from_centres,
+    similarity_from_poses,
 )
 from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, SiftSettings, VerifiedMatcher, default_cache_dir
 from sg_nerfstudio.initialisers.reference_cloud import (
@@ -54,7 +56,12 @@ Method = Literal["colmap", "generalized"]
 METHODS: tuple[str, ...] = ("colmap", "generalized")
 
 
-@dataclass
+CENTRE_RANSAC_MIN_PHOTOS = 5
+"""Below this many registered photos the centre RANSAC (3-point samples) cannot reject an outlier and is poorly
+conditioned; the pose-based similarity is used instead (`estimate.similarity_from_poses`)."""
+
+
+@dataclass(frozen=True)
 class InitialiserSettings:
     """Settings of the SIFT + pycolmap initialisers (COLMAP's defaults where COLMAP has one)."""
 
@@ -255,7 +262,14 @@ class Initialiser:
         meta_centres = np.stack([centre_of(o.cam_from_meta) for o, _ in registered])
         reference_centres = np.stack([centre_of(p.cam_from_reference) for _, p in registered])
         max_error = self.alignment_max_error()
-        found = similarity_from_centres(meta_centres, reference_centres, max_error, self.settings.matching.seed)
+        found = None
+        if len(registered) >= CENTRE_RANSAC_MIN_PHOTOS and not centres_degenerate(meta_centres):
+            found = similarity_from_centres(meta_centres, reference_centres, max_error, self.settings.matching.seed)
+        if found is None or found[1].sum() < needed:
+            # Few photos, or centres near one line (a walk along a facade): their orientations fix the rotation.
+            found = similarity_from_poses(
+                np.stack([o.cam_from_meta for o, _ in registered]), np.stack([p.cam_from_reference for _, p in registered]), max_error,
+            )
         if found is None or found[1].sum() < needed:
             agreeing = 0 if found is None else int(found[1].sum())
             return self._failure("colmap", meta, poses, f"the {len(registered)} registered photos give no Sim(3) that at least {needed} of them fit within {max_error:.3g} reference units (best: {agreeing})")

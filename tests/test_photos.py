@@ -19,7 +19,7 @@ from PIL import Image
 from sg_nerfstudio.geometry.alignment import AlignmentError, align_cameras
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.photos.collection import PhotoFolderError, prepare_photos
+from sg_nerfstudio.photos.collection import prepare_photos
 from sg_nerfstudio.photos.scene import RealSceneError, RealSceneSettings, build_real_scene, split_photos
 from sg_nerfstudio.photos.strecha import CameraFileError, read_strecha_camera
 from sg_nerfstudio.scripts.make_scene import main as make_scene_main

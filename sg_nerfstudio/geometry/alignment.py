@@ -55,7 +55,12 @@ def align_cameras(source: Array, target: Array) -> CameraAlignment:
         raise AlignmentError("The two camera sets are not related by a similarity with positive scale (their centres run in opposite directions).")
     translation = tgt_centres.mean(0) - scale * rotation @ src_centres.mean(0)
     transform = Sim3.from_parts(scale, rotation, translation)
+    return CameraAlignment(transform, *camera_residuals(transform, source, target))
+
+
+def camera_residuals(transform: Sim3, source: Array, target: Array) -> tuple[Array, Array]:
+    """[N] rotation (degrees) and centre (target units) differences of the cameras `source` [N, 3, 4] moved
+    by `transform` from the cameras `target` [N, 3, 4]."""
     moved = np.stack([transform.move_camera(pose) for pose in source])
-    rotation_residual = np.array([rotation_angle_deg(m[:, :3] @ t[:, :3].T) for m, t in zip(moved, target)])
-    centre_residual = np.linalg.norm(camera_centres(moved) - tgt_centres, axis=1)
-    return CameraAlignment(transform, rotation_residual, centre_residual)
+    rotation = np.array([rotation_angle_deg(m[:, :3] @ t[:, :3].T) for m, t in zip(moved, target)])
+    return rotation, np.linalg.norm(camera_centres(moved) - camera_centres(target), axis=1)

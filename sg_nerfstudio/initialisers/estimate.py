@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 import pycolmap
 
-from sg_nerfstudio.geometry.alignment import AlignmentError, align_cameras
+from sg_nerfstudio.geometry.alignment import AlignmentError, align_cameras, camera_residuals
 from sg_nerfstudio.geometry.sim3 import Sim3
 
 Array = np.ndarray
@@ -152,7 +152,7 @@ def similarity_from_poses(
         for b in range(a + 1, count):
             try:
                 hypothesis = align_cameras(cam_from_meta[[a, b]], cam_from_reference[[a, b]]).transform
-                scored = align_cameras_residuals(hypothesis, cam_from_meta, cam_from_reference)
+                scored = camera_residuals(hypothesis, cam_from_meta, cam_from_reference)
             except AlignmentError:
                 continue
             inliers = (scored[1] < max_error) & (scored[0] < max_rotation_deg)
@@ -163,17 +163,9 @@ def similarity_from_poses(
         return None
     inliers = best[1]
     refit = align_cameras(cam_from_meta[inliers], cam_from_reference[inliers]).transform
-    rotation_residual, centre_residual = align_cameras_residuals(refit, cam_from_meta, cam_from_reference)
+    rotation_residual, centre_residual = camera_residuals(refit, cam_from_meta, cam_from_reference)
     inliers = (centre_residual < max_error) & (rotation_residual < max_rotation_deg)
     return np.asarray(refit), inliers
-
-
-def align_cameras_residuals(transform: Sim3, cam_from_meta: Array, cam_from_reference: Array) -> tuple[Array, Array]:
-    """[P] rotation (degrees) and centre (reference units) residuals of the meta cameras moved by `transform`."""
-    moved = np.stack([transform.move_camera(pose) for pose in cam_from_meta])
-    rotation = np.array([Sim3.from_parts(1.0, m[:, :3] @ r[:, :3].T, np.zeros(3)).rotation_angle_deg() for m, r in zip(moved, cam_from_reference)])
-    centres = np.linalg.norm(np.stack([centre_of(m) - centre_of(r) for m, r in zip(moved, cam_from_reference)]), axis=1)
-    return rotation, centres
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,9 @@
                  reference images, 2D-3D through the reference's triangulated SIFT points, absolute pose
                  with the reference fixed), then the Sim(3) comes from the registered photos' camera
                  centres with RANSAC (COLMAP's model_aligner idea; the paper uses max error 3 in the
-                 metres of its GPS-scaled references). Fewer than 3 agreeing photos is a failure.
+                 metres of its GPS-scaled references); below 5 registered photos or with centres near
+                 one line, from their poses instead (estimate.similarity_from_poses). Fewer than 3
+                 agreeing photos is a failure.
     generalized  the photos' 2D-3D correspondences are pooled and the meta-image is solved as one
                  generalized camera (estimate.generalized_similarity): our analogue of gDLS+++.
 

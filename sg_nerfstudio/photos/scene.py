@@ -188,6 +188,12 @@ def _from_colmap(path: Path, names: list[str], sizes: dict) -> dict[str, SolvedP
         image = model.images[image_id]
         if image.name in sizes:
             camera = pycolmap.Camera(model.cameras[image.camera_id].todict())
+            width, height = sizes[image.name]
+            if abs(camera.width / camera.height - width / height) > 0.01:
+                raise RealSceneError(
+                    f"COLMAP model {path} says {image.name} is {camera.width}x{camera.height} but the photo is {width}x{height} "
+                    "after EXIF rotation; expected the same aspect ratio."
+                )
             camera.rescale(*sizes[image.name])
             solved[image.name] = SolvedPhoto(image.name, camera, image.cam_from_world().matrix())
     if len(solved) < 3:

@@ -63,7 +63,7 @@ CENTRE_RANSAC_MIN_PHOTOS = 5
 conditioned; the pose-based similarity is used instead (`estimate.similarity_from_poses`)."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class InitialiserSettings:
     """Settings of the SIFT + pycolmap initialisers (COLMAP's defaults where COLMAP has one)."""
 

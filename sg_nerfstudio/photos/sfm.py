@@ -18,6 +18,7 @@ features, no verified pair, or verified pairs that the mapper could not use.
 
 from __future__ import annotations
 
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -174,16 +175,8 @@ def retrieval_pairs(features: list[ImageFeatures], neighbours: int, seed: int) -
     return sorted(pairs)
 
 
-class _open:
-    def __init__(self, path: Path):
-        self.path = path
-
-    def __enter__(self) -> pycolmap.Database:
-        self.db = pycolmap.Database.open(str(self.path))
-        return self.db
-
-    def __exit__(self, *_) -> None:
-        self.db.close()
+def _open(path: Path) -> "closing[pycolmap.Database]":
+    return closing(pycolmap.Database.open(str(path)))
 
 
 def _features(db: pycolmap.Database, image_id: int) -> ImageFeatures:

@@ -16,9 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Type, Union
+from typing import Literal, Optional, Type, Union
 
-import pycolmap
 import torch
 
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
@@ -41,19 +40,29 @@ def check_seed_points(config: "FeatureDatamanagerConfig") -> None:
     parser = config.dataparser
     if not getattr(parser, "load_3D_points", False) or not hasattr(parser, "colmap_path"):
         return
-    data = Path(parser.data if str(parser.data) not in ("", ".") else config.data or ".")
-    model = data / parser.colmap_path
-    if not ((model / "points3D.bin").is_file() or (model / "points3D.txt").is_file()):
-        return  # the dataparser names the missing file itself
-    try:
-        count = pycolmap.Reconstruction(str(model)).num_points3D()
-    except Exception:
-        return  # the dataparser reports an unreadable model
+    data = Path(config.data) if config.data is not None else Path(parser.data)  # as FullImageDatamanager resolves it
+    count = count_points3D(data / parser.colmap_path)
+    if count is None:
+        return  # no points file: the dataparser names the missing file itself
     if count < MIN_SEED_POINTS:
         raise DatasetInputError(
-            f"The COLMAP model {model} has {count} 3D points; sg-feature-splat starts its Gaussians from them and needs "
+            f"The COLMAP model {data / parser.colmap_path} has {count} 3D points; sg-feature-splat starts its Gaussians from them and needs "
             f"at least {MIN_SEED_POINTS} (triangulate the images with known poses, e.g. COLMAP's point_triangulator)."
         )
+
+
+def count_points3D(model: Path) -> Optional[int]:
+    """Number of 3D points of a COLMAP model from its points3D file alone (the binary header, or the data lines
+    of the text file), without loading the model; None when neither file exists."""
+    binary, text = model / "points3D.bin", model / "points3D.txt"
+    if binary.is_file():
+        with binary.open("rb") as handle:
+            header = handle.read(8)
+        return int.from_bytes(header, "little") if len(header) == 8 else 0
+    if text.is_file():
+        with text.open() as handle:
+            return sum(1 for line in handle if line.strip() and not line.startswith("#"))
+    return None
 
 
 @dataclass

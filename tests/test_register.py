@@ -222,7 +222,8 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
     assert code == 0, err
     result = out / "front"
     record = json.loads((result / "transform.json").read_text())
-    assert {"matrix", "scale", "rotation_wxyz", "translation", "initial", "final_trimmed_loss", "steps", "wall_time_s", "settings"} <= set(record)
+    assert {"matrix", "scale", "rotation_wxyz", "translation", "initial", "final_trimmed_loss", "steps", "wall_time_s", "settings", "verdict"} <= set(record)
+    assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"] and "sharpness" in record["verdict_evidence"]
     assert record["steps"] == 12 and record["settings"]["images_per_step"] == 2
     np.testing.assert_allclose(record["initial"]["matrix"], start, atol=1e-9)
     aligned = pycolmap.Reconstruction(str(result / "aligned"))
@@ -232,7 +233,7 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
         centre = aligned.find_image_with_name(photo.name).projection_center()
         np.testing.assert_allclose(centre, (matrix @ np.append(photo.centre, 1))[:3], atol=1e-6)
     rows = (result / "losses.csv").read_text().strip().splitlines()
-    assert rows[0] == "step,image,loss,kept,weight" and len(rows) == 1 + 12 * 2
+    assert rows[0] == "step,image,loss,kept,weight,stage" and len(rows) == 1 + 12 * 2
     for name in ("loss_curve.png", "ignored_histogram.png"):
         assert cv2.imread(str(result / "report" / name)) is not None
     assert len(list((result / "report" / "comparisons").glob("*_before_after.png"))) >= 2
@@ -272,13 +273,13 @@ def test_summary_table_is_readable_at_80_columns():
     from sg_nerfstudio.registration.session import MetaOutcome, summary_table
 
     meta = SimpleNamespace(name="front-facade", photos=[None] * 16)
-    result = SimpleNamespace(final_trimmed_loss=0.0123, wall_time_s=215.3)
+    result = SimpleNamespace(final_trimmed_loss=0.0123, wall_time_s=215.3, verdict=SimpleNamespace(label="uncertain"))
     errors = {"before": PoseErrors(15.0, 0.1, [], []), "after": PoseErrors(0.31, 0.0041, [], [])}
     console = Console(width=80, record=True)
     console.print(summary_table([MetaOutcome(meta, result, errors), MetaOutcome(meta)]))
     text = console.export_text()
     assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
-    for cell in ("meta-image", "photos", "ΔR (°)", "ΔT", "accurate", "outlier", "loss", "15.00→0.31", "0.100→0.004", "no→yes", "yes→no", "215", "init failed"):
+    for cell in ("meta-image", "photos", "ΔR (°)", "ΔT", "accurate", "outlier", "verdict", "15.00→0.31", "0.100→0.004", "no→yes", "yes→no", "uncertain", "215", "init failed"):
         assert cell in text, cell
 
 
@@ -391,3 +392,80 @@ def test_several_meta_images_merge_into_one_model_in_the_reference_frame(referen
         errors = pose_errors(meta.poses, Sim3.from_matrix(result), Sim3.from_matrix(truth))
         assert errors.rotation_deg < 1.0 and errors.translation < 0.05, errors
     assert {track.image_id for point in merged.points3D.values() for track in point.track.elements} <= set(merged.reg_image_ids())
+
+
+def test_verdict_rule_follows_its_evidence():
+    from sg_nerfstudio.registration import verdict
+    from sg_nerfstudio.registration.verdict import Evidence, decide
+
+    sound = dict(sharpness=2 * verdict.REGISTERED_SHARPNESS, flattest_rise=0.05, agreeing_photos=8, photos=10, median_coverage=0.8,
+                 objective_drop=0.3, probe_rotation_deg=1.8, probe_translation=0.02)
+    assert decide(Evidence(**sound)).label == "registered"
+    assert decide(Evidence(**sound | {"agreeing_photos": 2})).label == "failed"
+    assert decide(Evidence(**sound | {"sharpness": 0.5 * verdict.FAILED_SHARPNESS})).label == "failed"
+    shallow = 0.5 * (verdict.FAILED_SHARPNESS + verdict.REGISTERED_SHARPNESS)
+    assert decide(Evidence(**sound | {"sharpness": shallow})).label == "uncertain"
+    descending = decide(Evidence(**sound | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE}))
+    assert descending.label == "uncertain" and "not converged" in descending.reasons[0]
+
+
+def facing_the_other_side(ground_truth: Sim3) -> Sim3:
+    """The ground truth turned 180° about the vertical axis through the reference origin: the photos of one
+    facade looking at the opposite one."""
+    return Sim3.from_parts(1.0, np.diag([-1.0, -1.0, 1.0]), np.zeros(3)) @ ground_truth
+
+
+def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(reference, meta, ground_truth):
+    settings = RegistrationSettings(**{**FAST, "steps": 20, "objective": "teacher-on-render"})
+    wrong = register(reference, meta, facing_the_other_side(ground_truth), settings)
+    right = register(reference, meta, ground_truth, settings)
+    assert pose_errors(meta.poses, wrong.transform, ground_truth).outlier()
+    assert wrong.verdict.label != "registered", wrong.verdict
+    assert right.verdict.label == "registered", right.verdict
+
+
+def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, ground_truth, monkeypatch):
+    """Targets rendered by the model at the truth (for every stage), a start 12° / 0.1 / 10% away: a coarse stage,
+    8 rotated hypotheses of which 3 are optimised, then the main stage end at the truth; history and step count
+    follow the stages."""
+    from sg_nerfstudio.registration import optimize
+
+    original = optimize.prepare_photos
+    monkeypatch.setattr(optimize, "prepare_photos", lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s))
+    settings = RegistrationSettings(**{**FAST, "steps": 60, "objective": "teacher-on-render", "render_scale": 4.0, "pyramid": (2,),
+                                       "pyramid_steps": 40, "hypotheses": 8})
+    start = perturbed_start(meta, ground_truth, 30, 12.0, 0.1, 0.1)
+    steps = []
+    result = register(reference, meta, start, settings, on_step=lambda step, _: steps.append(step))
+    errors = pose_errors(meta.poses, result.transform, ground_truth)
+    assert errors.rotation_deg < 1.0 and errors.translation < 0.05, errors
+    assert len(steps) == optimize.total_steps(settings) == 60 + 3 * 40  # every optimised hypothesis runs the coarse stage
+    assert result.steps == 100 and len(result.hypotheses) == 3 and sum(h["agrees_with_winner"] for h in result.hypotheses) >= 1
+    assert [row["stage"] for row in result.history[:: len(meta.photos)]] == ["coarse-64"] * 40 + ["main"] * 60
+
+
+def test_fail_on_and_merged_leave_out_a_failed_verdict(reference_config, tiny_scene, tmp_path, capsys, monkeypatch):
+    """Two meta-images, the second judged failed (the rule is forced here; its evidence is tested above): the
+    table and transform.json carry the verdicts, merged/ holds only the first and says why, --fail-on failed
+    exits with status 2 and --fail-on uncertain too."""
+    from sg_nerfstudio.registration import optimize
+    from sg_nerfstudio.registration.verdict import Verdict, decide
+
+    first = tiny_scene / "meta" / "front"
+    second = moved_meta_image(first, tmp_path / "front_moved", Sim3.random(np.random.default_rng(4), 30.0, 1.0, 0.3))
+    calls = []
+    monkeypatch.setattr(optimize, "decide", lambda evidence: calls.append(1) or (decide(evidence) if len(calls) % 2 else Verdict("failed", ["forced by the test"], evidence)))
+    for fail_on, out in (("failed", tmp_path / "out"), ("uncertain", tmp_path / "out2")):
+        args = ["--load-config", str(reference_config), "--output-dir", str(out), "--steps", "3", "--fail-on", fail_on]
+        for meta_dir in (first, second):
+            args += ["--meta-image", str(meta_dir), "--init", str(meta_dir / "gt_transform.json")]
+        capsys.readouterr()
+        code = register_main(args)
+        printed, err = capsys.readouterr()
+        assert code == 2 and "front_moved" in err and f"--fail-on {fail_on}" in err, err
+        assert json.loads((out / "front_moved" / "transform.json").read_text())["verdict"] == "failed"
+        assert json.loads((out / "front" / "transform.json").read_text())["verdict"] in {"registered", "uncertain", "failed"}
+        record = json.loads((out / "merged" / "merge.json").read_text())
+        assert [part["source"] for part in record["merged"]] == ["front"]
+        assert record["not_merged"] == [{"source": "front_moved", "reason": "verdict failed: forced by the test"}]
+        assert "failed" in printed

@@ -3,14 +3,15 @@
 Per step: choose the photos of the step (`BatchSchedule`), move their cameras by T = U(delta) o T0 in the
 dataparser frame, render the model and compare with the photos (`objectives.PhotoLosses`), aggregate the
 per-photo losses robustly (`robust.RobustAggregator`, LTS by default), take an Adam step on the 7
-parameters delta (`robust_step`) and record what happened (`History`). Everything the caller passes in
+parameters delta (`robust_step`) and record what happened (`History`). At the end the result is probed
+around for its verdict (`verdict.py`). Everything the caller passes in
 and gets back is in the reference *world* frame.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -19,11 +20,12 @@ from torch import Tensor
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage
-from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator
 from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.registration.verdict import Verdict, decide, gather_evidence, trimmed_mean
 
 Array = np.ndarray
 
@@ -48,6 +50,8 @@ class RegistrationResult:
     settings: dict
     photo_names: list[str]
     coverage: Array  # [P] fraction of rendered pixels covered by the model at the initial transform
+    verdict: Verdict  # registered | uncertain | failed, with its evidence (verdict.py)
+    hypotheses: list[dict] = field(default_factory=list)  # with settings.hypotheses: each optimised start and its end
 
 
 class BatchSchedule:
@@ -58,14 +62,16 @@ class BatchSchedule:
         self.count, self.per_step = count, per_step or count
         self.rng = np.random.default_rng(seed)
         self.queue: list[int] = []
+        self.last: list[int] = []
 
     def next(self) -> list[int]:
         if self.per_step >= self.count:
-            return list(range(self.count))
+            self.last = list(range(self.count))
+            return self.last
         while len(self.queue) < self.per_step:
             self.queue.extend(self.rng.permutation(self.count).tolist())
-        batch, self.queue = self.queue[: self.per_step], self.queue[self.per_step :]
-        return batch
+        self.last, self.queue = self.queue[: self.per_step], self.queue[self.per_step :]
+        return self.last
 
 
 class History:
@@ -77,11 +83,17 @@ class History:
         self.ignored = np.zeros(len(names))
         self.evaluated = np.zeros(len(names))
 
-    def record(self, step: int, batch: list[int], losses: list[Tensor], kept: Array, weights: Array) -> None:
+    def record(self, step: int, batch: list[int], losses: list[Tensor], kept: Array, weights: Array, stage: str = "main") -> None:
         for index, loss, keep, weight in zip(batch, [float(loss.detach()) for loss in losses], kept, weights):
-            self.rows.append({"step": step, "image": self.names[index], "loss": loss, "kept": bool(keep), "weight": float(weight)})
+            self.rows.append({"step": step, "image": self.names[index], "loss": loss, "kept": bool(keep), "weight": float(weight), "stage": stage})
             self.ignored[index] += not keep
             self.evaluated[index] += 1
+
+    def extend(self, other: "History") -> None:
+        """Append the rows and counts of another history of the same photos."""
+        self.rows.extend(other.rows)
+        self.ignored += other.ignored
+        self.evaluated += other.evaluated
 
     def ignored_fraction(self) -> Array:
         return self.ignored / np.maximum(self.evaluated, 1)
@@ -129,8 +141,7 @@ def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: Registration
     with torch.no_grad():
         values, _ = losses(final_ns.to_torch(), list(range(len(losses.photos))))
     final = torch.stack(values).double().numpy()
-    trimmed = final[final <= np.percentile(final, settings.lts_percentile)] if settings.robust != "none" else final
-    return final, float(trimmed.mean())
+    return final, trimmed_mean(final, settings.lts_percentile, settings.robust)
 
 
 def register(
@@ -144,8 +155,11 @@ def register(
 ) -> RegistrationResult:
     """Estimate the Sim(3) meta -> reference world starting from `initial_world`.
 
-    `photos` and `objective` may come prepared (`prepare_photos`, `build_objective`: the teacher is built once).
-    `on_step(step, transform)` is called after every step with the current estimate (meta -> world).
+    Stages: the coarse-to-fine `pyramid` stages of the settings (if any; hypotheses around the start at the
+    coarsest), then the main stage at the settings' teacher size. `photos` and `objective` may come prepared
+    for the main stage (`prepare_photos`, `build_objective`: the teacher is built once). `on_step(step,
+    transform)` is called after every step of every stage (`total_steps(settings)` in all) with the current
+    estimate (meta -> world).
     """
     started = time.perf_counter()
     objective = objective or build_objective(reference, settings)
@@ -154,45 +168,167 @@ def register(
     ns_to_world = world_to_ns.inverse()
     initial_ns = world_to_ns @ initial_world
     near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
-    losses = PhotoLosses(reference, photos, objective, settings, near_plane)
-    initial_losses, coverage = evaluate_start(losses, initial_ns, meta.name)
-    aggregator = RobustAggregator(settings.robust, settings.lts_percentile, initial_losses)
+    main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), settings.steps, settings.lr, settings.lr_final)
+    initial_losses, coverage = evaluate_start(main.losses, initial_ns, meta.name)
 
-    start = initial_ns.to_torch()
-    centre = torch.from_numpy(meta.centroid_under(initial_ns))
-    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-    optimizer = torch.optim.Adam([delta], lr=settings.lr, eps=settings.adam_eps)
-    gamma = (settings.lr_final / settings.lr) ** (1.0 / max(settings.steps, 1)) if settings.lr_final else 1.0
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
-    batches = BatchSchedule(len(photos), settings.images_per_step, settings.seed)
     history = History([p.name for p in photos])
-    for step in range(settings.steps):
-        batch = batches.next()
-        values, kept, weights = robust_step(losses, aggregator, Sim3.update(delta, centre) @ start, batch, optimizer, scheduler)
-        if not torch.isfinite(delta).all():
-            raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step}.")
-        history.record(step, batch, values, kept, weights)
-        if on_step is not None:
-            on_step(step, ns_to_world @ current_estimate(delta, centre, start))
+    report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
+    stages = coarse_stages(reference, meta, settings, near_plane) + [main]
+    current, step, hypotheses = initial_ns, 0, []
+    for index, stage in enumerate(stages):
+        if index == 0 and settings.hypotheses > 0:
+            current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, report)
+        else:
+            current, step = optimise_stage(stage, meta, current, settings, history, step, report)
 
-    final_ns = current_estimate(delta, centre, start)
-    final_losses, trimmed = final_evaluation(losses, final_ns, settings)
+    final_losses, trimmed = final_evaluation(main.losses, current, settings)
+    evidence = gather_evidence(main.losses, meta, current, final_losses, initial_losses, settings.robust, settings.lts_percentile)
+    elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
+    if elsewhere:
+        evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
+    timings = {key: sum(stage.losses.timings[key] for stage in stages) for key in main.losses.timings}
     return RegistrationResult(
-        transform=ns_to_world @ final_ns,
+        transform=ns_to_world @ current,
         initial_transform=initial_world.numpy(),
         final_losses=final_losses,
         initial_losses=initial_losses,
         final_trimmed_loss=trimmed,
         history=history.rows,
         ignored_fraction=history.ignored_fraction(),
-        steps=settings.steps,
+        steps=step,
         wall_time_s=time.perf_counter() - started,
-        timings=dict(losses.timings),
+        timings=timings,
         near_plane=near_plane,
         settings=asdict(settings),
         photo_names=[p.name for p in photos],
         coverage=coverage,
+        verdict=decide(evidence),
+        hypotheses=hypotheses,
     )
+
+
+@dataclass
+class Stage:
+    """One optimisation stage: the per-photo losses it minimises (teacher size, render size) and its schedule."""
+
+    name: str  # "main" or "coarse-<teacher input size>"
+    losses: PhotoLosses
+    steps: int
+    lr: float
+    lr_final: Optional[float]
+
+
+def total_steps(settings: RegistrationSettings) -> int:
+    """Steps of all stages (what `on_step` counts up to): each optimised hypothesis runs the first stage."""
+    first = settings.pyramid_steps if settings.pyramid else settings.steps
+    runs = min(settings.hypotheses + 1, max(1, settings.hypotheses_kept)) if settings.hypotheses else 1
+    return settings.steps + len(settings.pyramid) * settings.pyramid_steps + (runs - 1) * first
+
+
+MIN_COARSE_GRID = 8
+"""Coarse stages whose teacher grid would have fewer cells on the long side are skipped (a 4-cell descriptor
+of a photo matches almost any pose: on the tiny test scene such a stage sent a start at the truth 15° away)."""
+
+
+def coarse_stages(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings, near_plane: float) -> list[Stage]:
+    """The `pyramid` stages, coarsest first: the teacher at its input size divided by each factor (cells that
+    many times larger in the photo), the learning rate multiplied by it and decaying tenfold within the stage."""
+    stages = []
+    main_size = settings.teacher_input_size or reference.teacher.input_size
+    for factor in sorted(settings.pyramid, reverse=True):
+        if factor < 2:
+            raise ValueError(f"Pyramid factors must be at least 2 (the main stage is factor 1), got {factor}.")
+        stage_settings = replace(settings, teacher_input_size=main_size // factor)
+        objective = build_objective(reference, stage_settings)
+        if objective.teacher.grid_size < MIN_COARSE_GRID:
+            continue
+        photos = prepare_photos(reference, meta, stage_settings, objective)
+        lr = settings.lr * factor
+        stages.append(Stage(f"coarse-{main_size // factor}", PhotoLosses(reference, photos, objective, stage_settings, near_plane), settings.pyramid_steps, lr, lr / 10))
+    return stages
+
+
+def optimise_stage(
+    stage: Stage, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
+    on_step: Optional[Callable[[int, Sim3], None]],
+) -> tuple[Sim3, int]:
+    """Adam on delta for `stage.steps` steps from `start_ns` (meta -> dataparser), recorded in `history` from
+    step `first_step` on; (the estimate at the end, the next step number)."""
+    losses = stage.losses
+    aggregator = RobustAggregator(settings.robust, settings.lts_percentile, objective_at(losses, start_ns))
+    start = start_ns.to_torch()
+    centre = torch.from_numpy(meta.centroid_under(start_ns))
+    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
+    optimizer = torch.optim.Adam([delta], lr=stage.lr, eps=settings.adam_eps)
+    gamma = (stage.lr_final / stage.lr) ** (1.0 / max(stage.steps, 1)) if stage.lr_final else 1.0
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
+    batches = BatchSchedule(len(losses.photos), settings.images_per_step, settings.seed)
+    for step in range(first_step, first_step + stage.steps):
+        batch = batches.next()
+        values, kept, weights = robust_step(losses, aggregator, Sim3.update(delta, centre) @ start, batch, optimizer, scheduler)
+        if not torch.isfinite(delta).all():
+            raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step} ({stage.name}).")
+        history.record(step, batch, values, kept, weights, stage.name)
+        if on_step is not None:
+            on_step(step, current_estimate(delta, centre, start))
+    return current_estimate(delta, centre, start), first_step + stage.steps
+
+
+def objective_at(losses: PhotoLosses, meta_to_dataparser: Sim3) -> Array:
+    """[P] per-photo losses of every photo under a numpy Sim3 (meta -> dataparser), without gradients."""
+    with torch.no_grad():
+        return torch.stack(losses(meta_to_dataparser.to_torch(), list(range(len(losses.photos))))[0]).double().numpy()
+
+
+def best_hypothesis(
+    stage: Stage, judge: PhotoLosses, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
+    on_step: Optional[Callable[[int, Sim3], None]],
+) -> tuple[Sim3, list[dict], int]:
+    """Several starts around `start_ns`: the start and `settings.hypotheses` rotations of `hypothesis_deg` about
+    axes spread over the sphere (about the cameras' centroid). The `hypotheses_kept` with the lowest robust
+    objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
+    stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
+
+    Returns (winner, one record per optimised hypothesis, the next step number)."""
+    candidates = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
+    score = lambda losses, transform: trimmed_mean(objective_at(losses, transform), settings.lts_percentile, settings.robust)
+    scores = [score(stage.losses, transform) for _, transform in candidates]
+    runs = []
+    for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses_kept)]:
+        own = History(history.names)
+        final, _ = optimise_stage(stage, meta, candidates[index][1], settings, own, first_step, on_step)
+        runs.append((final, score(judge, final), own, candidates[index][0], scores[index]))
+    winner, _, winner_history, _, _ = min(runs, key=lambda run: run[1])
+    history.extend(winner_history)
+    records = [
+        {"axis": axis, "start_objective_coarse": start_score, "final_objective": final_score,
+         "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
+        for final, final_score, _, axis, start_score in runs
+    ]
+    return winner, records, first_step + stage.steps
+
+
+HYPOTHESIS_AGREEMENT_DEG = 2.0
+"""Optimised hypotheses that end within this rotation of the winner agree with it."""
+
+
+def hypotheses_around(start_ns: Sim3, meta: MetaImage, count: int, angle_deg: float) -> list[tuple[list[float], Sim3]]:
+    """`count` (axis, Sim3): `start_ns` rotated by `angle_deg` about the cameras' centroid, axes on a Fibonacci sphere."""
+    centre = torch.from_numpy(meta.centroid_under(start_ns))
+    golden = np.pi * (3.0 - np.sqrt(5.0))
+    hypotheses = []
+    for k in range(count):
+        z = 1.0 - 2.0 * (k + 0.5) / count
+        axis = np.array([np.sqrt(1 - z * z) * np.cos(golden * k), np.sqrt(1 - z * z) * np.sin(golden * k), z])
+        delta = torch.zeros(7, dtype=torch.float64)
+        delta[:3] = torch.from_numpy(axis * np.radians(angle_deg))
+        hypotheses.append((axis.round(4).tolist(), (Sim3.update(delta, centre) @ start_ns.to_torch()).numpy()))
+    return hypotheses
+
+
+def rotation_between_deg(a: Sim3, b: Sim3) -> float:
+    """Angle of the rotation between two similarities (degrees)."""
+    return rotation_angle_deg(np.asarray(a.rotation) @ np.asarray(b.rotation).T)
 
 
 def current_estimate(delta: Tensor, centre: Tensor, start: Sim3) -> Sim3:

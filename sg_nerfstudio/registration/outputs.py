@@ -1,9 +1,10 @@
 """Everything ns-register-meta writes for one meta-image, into a directory that appears atomically.
 
     transform.json   Sim(3) meta -> reference world (matrix, scale, quaternion, translation), the initial
-                     transform, final trimmed loss, steps, wall time, settings
+                     transform, the verdict (registered | uncertain | failed) with its reasons and evidence,
+                     final trimmed loss, steps, wall time, settings, the optimised hypotheses (if any)
     aligned/         the meta-image's COLMAP model moved into the reference world frame
-    losses.csv       per step and photo: loss, whether LTS kept it, its weight
+    losses.csv       per step and photo: loss, whether LTS kept it, its weight, the stage (coarse-<size> | main)
     report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (before | after, each titled; top
                      half: reference model rendered at the photo's pose, bottom half: the photo; labelled)
     metrics.json     with --gt: ΔR, ΔT, accurate/outlier before and after
@@ -64,6 +65,9 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
     record = result.transform.as_record()
     record.update({
         "initial": result.initial_transform.as_record(),
+        "verdict": result.verdict.label,
+        "verdict_reasons": result.verdict.reasons,
+        "verdict_evidence": result.verdict.as_record()["evidence"],
         "meta_image": str(meta.directory),
         "reference_config": str(reference.config_path),
         "reference_checkpoint": str(reference.checkpoint_path),
@@ -72,6 +76,7 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
         "wall_time_s": round(result.wall_time_s, 3),
         "time_split_s": {k: round(v, 3) for k, v in result.timings.items()},
         "effective_near_plane": result.near_plane,
+        "hypotheses": result.hypotheses,
         "settings": result.settings,
         "photos": [
             {"name": n, "initial_loss": float(a), "final_loss": float(b), "ignored_fraction": float(c), "initial_coverage": float(d)}
@@ -88,7 +93,7 @@ def _write_aligned_model(directory: Path, meta: MetaImage, transform: Sim3) -> N
 
 def _write_losses(path: Path, result: RegistrationResult) -> None:
     with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=["step", "image", "loss", "kept", "weight"])
+        writer = csv.DictWriter(handle, fieldnames=["step", "image", "loss", "kept", "weight", "stage"])
         writer.writeheader()
         writer.writerows(result.history)
 
@@ -102,12 +107,20 @@ def _plot_losses(path: Path, result: RegistrationResult) -> None:
     figure, axis = plt.subplots(figsize=(6, 3.5))
     axis.plot(all_mean, label="all photos in the step", alpha=0.6)
     axis.plot(kept_mean, label="kept by the robust loss")
+    for row in stage_starts(result.history)[1:]:  # coarse-to-fine: each stage has its own loss scale
+        axis.axvline(row["step"], color="grey", linestyle=":")
+        axis.annotate(row["stage"], (row["step"], 1.0), xycoords=("data", "axes fraction"), va="top", fontsize=7)
     axis.set_xlabel("step")
     axis.set_ylabel(f"{result.settings['loss']} {result.settings['objective']} loss")
     axis.legend()
     figure.tight_layout()
     figure.savefig(path, dpi=120)
     plt.close(figure)
+
+
+def stage_starts(history: list[dict]) -> list[dict]:
+    """The first row of each stage in a registration's history."""
+    return [row for previous, row in zip([None] + history[:-1], history) if previous is None or previous["stage"] != row["stage"]]
 
 
 def _plot_ignored(path: Path, result: RegistrationResult) -> None:

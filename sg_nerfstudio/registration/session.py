@@ -33,10 +33,11 @@ from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings
 from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.objectives import build_objective, prepare_photos
-from sg_nerfstudio.registration.optimize import RegistrationResult, register
+from sg_nerfstudio.registration.optimize import RegistrationResult, register, total_steps
 from sg_nerfstudio.registration.outputs import write_outputs
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.registration.verdict import SEVERITY
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.splat.trained import read_trainer_config
 
@@ -90,6 +91,9 @@ class RegistrationJob:
     """Show COLMAP's INFO log while initialising (default: its warnings and errors only)."""
     threads: Optional[int] = None
     """CPU threads of torch and numba (default: the cores this process may use); give concurrent jobs a share each."""
+    fail_on: Optional[Literal["uncertain", "failed"]] = None
+    """Exit with status 2 when a meta-image's verdict is this or worse (`uncertain` also fails on `failed`); a
+    meta-image whose initialisation failed counts as failed. Default: only bad inputs and no registration at all fail."""
 
 
 @dataclass
@@ -186,7 +190,7 @@ def register_one(job: RegistrationJob, reference, meta: MetaImage, initial: Sim3
     photos = prepare_photos(reference, meta, job.settings, objective)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console, transient=True) as progress:
-        task = progress.add_task(f"Registering {meta.name}", total=job.settings.steps)
+        task = progress.add_task(f"Registering {meta.name}", total=total_steps(job.settings))
         result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective)
     errors = None
     if gt is not None:
@@ -223,17 +227,20 @@ def read_reference_part(job: RegistrationJob) -> MergePart:
 
 
 def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optional[MergePart], overwrite: bool, console: Console) -> None:
-    """merged/: every registered meta-image (and optionally the reference) in one COLMAP model."""
+    """merged/: every registered meta-image whose verdict is not `failed` (and optionally the reference) in one
+    COLMAP model; merge.json lists the others with the reason."""
     parts = [reference_part] if reference_part is not None else []
     not_merged = {}
     for outcome in outcomes:
         if outcome.result is None:
             not_merged[outcome.meta.name] = "initialisation failed"
+        elif outcome.result.verdict.label == "failed":
+            not_merged[outcome.meta.name] = "verdict failed: " + "; ".join(outcome.result.verdict.reasons)
         else:
             transform = outcome.result.transform
             parts.append(MergePart(outcome.meta.name, aligned_reconstruction(outcome.meta.reconstruction, transform), transform))
     if not any(part.transform is not None for part in parts):
-        console.print(f"[yellow]No meta-image was registered, so {target} is not written.[/yellow]")
+        console.print(f"[yellow]No meta-image was registered with a verdict other than failed, so {target} is not written.[/yellow]")
         return
     write_merged(target, parts, not_merged, overwrite=overwrite)
     skipped = f"; not merged: {', '.join(not_merged)}" if not_merged else ""
@@ -253,9 +260,10 @@ def compute_initial_transform(initialiser: Initialiser, meta: MetaImage, method:
 
 
 def summary_table(outcomes: list[MetaOutcome]) -> Table:
-    """One row per meta-image, readable at 80 columns: errors as before→after (with --gt), trimmed loss, seconds."""
-    table = Table(title="ns-register-meta", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True, caption="ΔR, ΔT, accurate, outlier: before→after (with --gt); loss: final trimmed loss")
-    for column in ("meta-image", "photos", "ΔR (°)", "ΔT", "accurate", "outlier", "loss", "s"):
+    """One row per meta-image, readable at 80 columns: errors as before→after (with --gt), the verdict, seconds."""
+    caption = "ΔR, ΔT, accurate, outlier: before→after (with --gt); verdict: without ground truth (transform.json says why)"
+    table = Table(title="ns-register-meta", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True, caption=caption)
+    for column in ("meta-image", "photos", "ΔR (°)", "ΔT", "accurate", "outlier", "verdict", "s"):
         if column == "meta-image":
             table.add_column(column, overflow="fold", min_width=10)
         else:
@@ -272,8 +280,23 @@ def summary_table(outcomes: list[MetaOutcome]) -> Table:
                      f"{yes_no[before.accurate()]}→{yes_no[after.accurate()]}", f"{yes_no[before.outlier()]}→{yes_no[after.outlier()]}"]
         else:
             cells = ["-"] * 4
-        table.add_row(meta.name, str(len(meta.photos)), *cells, f"{result.final_trimmed_loss:.4f}", f"{result.wall_time_s:.0f}")
+        table.add_row(meta.name, str(len(meta.photos)), *cells, VERDICT_STYLE[result.verdict.label], f"{result.wall_time_s:.0f}")
     return table
+
+
+VERDICT_STYLE = {"registered": "[green]registered[/green]", "uncertain": "[yellow]uncertain[/yellow]", "failed": "[red]failed[/red]"}
+
+
+def verdict_of(outcome: MetaOutcome) -> str:
+    """The outcome's verdict; an initialisation that failed counts as `failed`."""
+    return outcome.result.verdict.label if outcome.result is not None else "failed"
+
+
+def fails(outcomes: list[MetaOutcome], fail_on: Optional[str]) -> list[str]:
+    """Names of the meta-images whose verdict is `fail_on` or worse (none without `fail_on`)."""
+    if fail_on is None:
+        return []
+    return [outcome.meta.name for outcome in outcomes if SEVERITY[verdict_of(outcome)] >= SEVERITY[fail_on]]
 
 
 def print_summary(outcomes: list[MetaOutcome], console: Console) -> None:
@@ -281,3 +304,5 @@ def print_summary(outcomes: list[MetaOutcome], console: Console) -> None:
     for outcome in outcomes:
         if outcome.target is not None:
             console.print(f"{outcome.meta.name}: transform, aligned model and report in {outcome.target}", soft_wrap=True)
+        if outcome.result is not None and outcome.result.verdict.label != "registered":
+            console.print(f"{outcome.meta.name}: {outcome.result.verdict.label} ({'; '.join(outcome.result.verdict.reasons)})", soft_wrap=True)

@@ -2,7 +2,8 @@
 
 Presets are YAML files in `sg_nerfstudio/registration/presets/` (installed with the package; the repository's
 `configs/register/` links to them): `paper` (the paper's settings, 12000 steps), `fast-cpu` (offline-teacher
-references on CPU) and `fast-cpu-features` (the paper's objective on CPU). Every command takes one with
+references on CPU), `fast-cpu-features` (the paper's objective on CPU) and `wide-cpu` (fast-cpu after
+coarse-to-fine stages and start hypotheses, for starts 10-30° off). Every command takes one with
 `--config NAME` or `--config path/to/preset.yaml`; flags override single values.
 """
 
@@ -21,7 +22,7 @@ from sg_nerfstudio.errors import InputError
 ObjectiveKind = Literal["features", "teacher-on-render", "photometric"]
 Robust = Literal["lts", "fixed-lts", "irls", "none"]
 LossKind = Literal["l1", "l2"]
-PRESETS = ("paper", "fast-cpu", "fast-cpu-features")
+PRESETS = ("paper", "fast-cpu", "fast-cpu-features", "wide-cpu")
 
 
 class PresetError(InputError):
@@ -58,6 +59,17 @@ class RegistrationSettings:
     near_plane: float = 0.7
     """Near plane in dataparser units against floaters (paper: 0.7); lowered automatically to half the
     nearest sparse-point depth of the meta-image so it never cuts away what the photos see."""
+    pyramid: tuple[int, ...] = ()
+    """Coarse-to-fine: coarse stages run before the main one, each the teacher at the main input size divided
+    by a factor (e.g. 4 2: cells 4x then 2x as large, a wider basin), coarsest first. Empty: main stage only."""
+    pyramid_steps: int = 60
+    """Steps of each coarse stage (learning rate: lr x factor, decaying tenfold)."""
+    hypotheses: int = 0
+    """With a pyramid: rotations of the start by `hypothesis_deg` about this many axes (a Fibonacci sphere)
+    scored at the coarsest stage, besides the start itself; 0: the start only."""
+    hypothesis_deg: float = 20.0
+    hypotheses_kept: int = 3
+    """Best-scoring hypotheses (the start included) optimised over the coarsest stage; the lowest end wins."""
     seed: int = 0
     backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
 

@@ -8,7 +8,7 @@
 flags override single settings. Without it the preset follows the device (`paper` on CUDA, a CPU preset
 otherwise) and the command says which. `--init` and `--gt` take one value per meta-image (a single `--init` applies
 to all). The session itself (initialisers, registration, outputs, merged/) is
-`sg_nerfstudio.registration.session`. Exit status 1 for a bad input and when no meta-image was registered.
+`sg_nerfstudio.registration.session`. Exit status 1 for a bad input and when no meta-image was registered; 2 with `--fail-on` when a verdict is that bad.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Optional
 import tyro
 from rich.console import Console
 
-from sg_nerfstudio.registration.session import RegistrationJob, default_preset, run_job
+from sg_nerfstudio.registration.session import RegistrationJob, default_preset, fails, run_job
 from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
 from sg_nerfstudio.scripts.cli import cli_main
 
@@ -47,8 +47,15 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     def body() -> int:
         console = Console()
-        outcomes = run_job(parse_args(argv, console), console)
-        return 0 if any(outcome.result is not None for outcome in outcomes) else 1
+        job = parse_args(argv, console)
+        outcomes = run_job(job, console)
+        if not any(outcome.result is not None for outcome in outcomes):
+            return 1
+        failing = fails(outcomes, job.fail_on)
+        if failing:
+            Console(stderr=True).print(f"--fail-on {job.fail_on}: the verdict of {', '.join(failing)} is {job.fail_on} or worse.", soft_wrap=True)
+            return 2
+        return 0
 
     return cli_main(body)
 

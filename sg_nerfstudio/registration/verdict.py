@@ -1,0 +1,164 @@
+"""A verdict per registration — `registered`, `uncertain` or `failed` — from evidence that needs no ground truth.
+
+After the optimisation the frozen model is rendered at 12 *probes* around the result: the Sim(3) rotated by
+±h_r about each axis and shifted by ±h_t along each axis of the dataparser frame, about the centroid of
+the moved cameras. h_r is one teacher cell's angle (the photos' median long-side field of view / the
+teacher grid) and h_t the distance that moves a point at the photos' median sparse-point depth by the same
+angle, so every probe shifts the image by about one descriptor cell. Evidence:
+
+- `sharpness`: the median over probes of the robust objective's relative rise (T_probe - T) / T, with T the
+  trimmed mean of the per-photo losses (the percentile rule of the registration). A registration that found
+  the model sits in a minimum the descriptor resolves; one that sees the wrong thing sits on a plateau.
+- `flattest_rise`: the smallest of those rises; below `DESCENT_TOLERANCE` a probe is better than the result
+  (the optimisation stopped on a slope, not in a minimum).
+- `agreeing_photos`: photos that are at their own minimum (median rise of their own loss over the probes
+  at least `PHOTO_RISE`) and that the model covers (at least `PHOTO_COVERAGE` of the render). Occluded or
+  wrong photos do not agree; a wrong result has few photos that agree.
+- `objective_drop`: 1 - T_final / T_initial (reported, not used: a good start has little to gain).
+- `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
+  for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
+
+Rule (thresholds calibrated on generated scenes, see README "Verdict"): `failed` when fewer than
+`FAILED_AGREEING` of the photos agree or the objective is flat (sharpness below `FAILED_SHARPNESS`);
+`registered` when at least `REGISTERED_AGREEING` agree, sharpness is at least `REGISTERED_SHARPNESS` and no
+probe descends; `uncertain` otherwise. Frames: the transform is meta -> dataparser, as in `PhotoLosses`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sg_nerfstudio.geometry.meta_image import MetaImage
+from sg_nerfstudio.geometry.sim3 import Sim3
+
+Array = np.ndarray
+Label = Literal["registered", "uncertain", "failed"]
+SEVERITY = {"registered": 0, "uncertain": 1, "failed": 2}
+
+PHOTO_RISE = 0.02
+PHOTO_COVERAGE = 0.25
+DESCENT_TOLERANCE = -0.005
+FAILED_AGREEING = 1 / 3
+FAILED_SHARPNESS = 0.015
+REGISTERED_AGREEING = 0.5
+REGISTERED_SHARPNESS = 0.05
+
+
+@dataclass
+class Evidence:
+    """What the verdict is decided from (all fractions relative; see the module docstring)."""
+
+    sharpness: float
+    flattest_rise: float
+    agreeing_photos: int
+    photos: int
+    median_coverage: float
+    objective_drop: float
+    probe_rotation_deg: float
+    probe_translation: float  # dataparser units
+    per_photo_rise: list[float] = field(default_factory=list)
+    per_photo_coverage: list[float] = field(default_factory=list)
+    hypothesis_margin: Optional[float] = None
+
+    @property
+    def agreeing_fraction(self) -> float:
+        return self.agreeing_photos / max(self.photos, 1)
+
+
+@dataclass
+class Verdict:
+    label: Label
+    reasons: list[str]
+    evidence: Evidence
+
+    def as_record(self) -> dict:
+        return {"verdict": self.label, "reasons": self.reasons, "evidence": asdict(self.evidence)}
+
+
+def trimmed_mean(values: Array, percentile: float, robust: str) -> float:
+    """The registration's robust aggregate of [P] per-photo losses: mean of those at most the percentile."""
+    if robust == "none":
+        return float(values.mean())
+    return float(values[values <= np.percentile(values, percentile)].mean())
+
+
+def probe_sizes(meta: MetaImage, photos, grid_size: int, meta_to_dataparser: Sim3) -> tuple[float, float]:
+    """(h_r radians, h_t dataparser units): one teacher cell's angle and the shift that moves a point at the
+    median sparse-point depth by that angle. `photos`: PreparedPhoto list (K and render width/height)."""
+    fovs = [2.0 * math.atan(0.5 * max(p.width, p.height) / float(p.K[0, 0] if p.width >= p.height else p.K[1, 1])) for p in photos]
+    rotation = float(np.median(fovs)) / grid_size
+    depths = np.concatenate([photo.point_depths for photo in meta.photos])
+    depths = depths[depths > 0]
+    depth = float(np.median(depths)) * meta_to_dataparser.scale if len(depths) else 1.0
+    return rotation, depth * rotation
+
+
+def probes(rotation: float, translation: float) -> list[Tensor]:
+    """12 deltas (omega, nu, log s) [7]: ±rotation about each axis, ±translation along each axis."""
+    deltas = []
+    for offset, size in ((0, rotation), (3, translation)):
+        for axis in range(3):
+            for sign in (1.0, -1.0):
+                delta = torch.zeros(7, dtype=torch.float64)
+                delta[offset + axis] = sign * size
+                deltas.append(delta)
+    return deltas
+
+
+
+def gather_evidence(
+    losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, initial_losses: Array, robust: str, percentile: float,
+) -> Evidence:
+    """Render the probes around `final_ns` (meta -> dataparser) and measure the evidence.
+
+    Args:
+        losses: the registration's `objectives.PhotoLosses`.
+        final_losses, initial_losses: [P] per-photo losses at the result and at the start.
+    """
+    indices = list(range(len(losses.photos)))
+    rotation, translation = probe_sizes(meta, losses.photos, losses.objective.teacher.grid_size, final_ns)
+    start = final_ns.to_torch()
+    centre = torch.from_numpy(meta.centroid_under(final_ns))
+    with torch.no_grad():
+        _, coverage = losses(start, indices)
+        probe_losses = np.stack([
+            torch.stack(losses(Sim3.update(delta, centre) @ start, indices)[0]).double().numpy() for delta in probes(rotation, translation)
+        ])  # [12, P]
+    final = trimmed_mean(final_losses, percentile, robust)
+    rises = np.array([trimmed_mean(row, percentile, robust) for row in probe_losses]) / max(final, 1e-12) - 1.0
+    photo_rise = np.median(probe_losses / np.maximum(final_losses, 1e-12)[None] - 1.0, axis=0)
+    coverage = coverage.double().numpy()
+    agreeing = (photo_rise >= PHOTO_RISE) & (coverage >= PHOTO_COVERAGE)
+    initial = trimmed_mean(initial_losses, percentile, robust)
+    return Evidence(
+        sharpness=float(np.median(rises)), flattest_rise=float(rises.min()), agreeing_photos=int(agreeing.sum()),
+        photos=len(indices), median_coverage=float(np.median(coverage)), objective_drop=1.0 - final / max(initial, 1e-12),
+        probe_rotation_deg=math.degrees(rotation), probe_translation=translation,
+        per_photo_rise=[float(v) for v in photo_rise], per_photo_coverage=[float(v) for v in coverage],
+    )
+
+
+def decide(evidence: Evidence) -> Verdict:
+    """The label and the reasons for it (see the module docstring for the rule)."""
+    agreeing = f"{evidence.agreeing_photos} of {evidence.photos} photos agree"
+    sharp = f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
+    if evidence.agreeing_fraction < FAILED_AGREEING:
+        return Verdict("failed", [f"only {agreeing}", sharp], evidence)
+    if evidence.sharpness < FAILED_SHARPNESS:
+        return Verdict("failed", [f"flat objective: {sharp}", agreeing], evidence)
+    reasons = []
+    if evidence.agreeing_fraction < REGISTERED_AGREEING:
+        reasons.append(f"only {agreeing}")
+    if evidence.sharpness < REGISTERED_SHARPNESS:
+        reasons.append(f"shallow minimum: {sharp}")
+    if evidence.flattest_rise < DESCENT_TOLERANCE:
+        reasons.append(f"not converged: a probe is {100 * -evidence.flattest_rise:.1f}% lower")
+    if reasons:
+        return Verdict("uncertain", reasons, evidence)
+    return Verdict("registered", [agreeing, sharp], evidence)

@@ -31,6 +31,14 @@ def preset(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def wide_preset(tmp_path_factory) -> Path:
+    values = yaml.safe_load(Path("configs/register/wide-cpu.yaml").read_text()) | {"steps": 3, "pyramid": [2], "pyramid_steps": 2, "hypotheses": 2, "hypotheses_kept": 2}
+    path = tmp_path_factory.mktemp("preset") / "wide-short.yaml"
+    path.write_text(yaml.safe_dump(values))
+    return path
+
+
 def test_benchmark_suite_definitions_follow_the_issue():
     """The default suite: at least 6 landmarks, 2-3 meta-images each, 8-60 photos (the issue's range), varied occluders and appearance."""
     scenes = SUITES["benchmark"]
@@ -49,14 +57,24 @@ def test_suite_layout_is_read_back(suite):
     assert [[m.name for m in s.metas] for s in scenes] == [["front"], ["front", "rear"]]
 
 
-def test_sg_bench_writes_tables_and_resumes(suite, preset, tmp_path, capsys):
+def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path, capsys):
     output = tmp_path / "results"
     args = [str(suite), "--output", str(output), "--config", str(preset), "--train-steps", "20",
-            "--initialisers", "colmap", "perturbed", "--ablations", "none", "--noise-levels", "2", "8", "--sizes", "3"]
+            "--initialisers", "colmap", "perturbed", "--ablations", "none", "--noise-levels", "2", "8", "--sizes", "3",
+            "--compare-config", str(wide_preset)]
     assert bench_main(args) == 0, capsys.readouterr().err
     records = [json.loads(p.read_text()) for p in sorted((output / "runs").glob("*/*/*.json"))]
-    # per meta-image: 2 starts + 1 ablation + 2 noise levels + 1 subset of 3 photos; three meta-images
-    assert len(records) == 3 * 6
+    # per meta-image: 2 starts + 1 ablation + 2 noise levels (twice: both presets) + 1 subset of 3 photos; three meta-images
+    assert len(records) == 3 * 8
+    for record in records:
+        if record["after"] is not None:
+            assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"]
+        if record["run"].startswith("noise-"):  # rotation with translation and scale in proportion
+            assert record["before"]["dR"] == pytest.approx(float(record["label"]), abs=1e-6) and record["before"]["dT"] > 0
+    by_name = {(r["scene"], r["meta"], r["run"]): r for r in records}
+    for (scene, meta, run), record in by_name.items():
+        if run.endswith("@wide-short"):  # the compared preset starts where the main one does
+            assert record["mode"] == "wide-short" and record["before"] == by_name[(scene, meta, run.split("@")[0])]["before"]
     for record in records:
         if record["run"] == "perturbed":
             assert record["before"]["dR"] == pytest.approx(5.0, abs=1e-6) and record["after"] is not None
@@ -69,7 +87,8 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, tmp_path, capsys):
     rows = list(csv.DictReader((output / "results.csv").open()))
     assert len(rows) == len(records)
     results = (output / "results.md").read_text()
-    for expected in ("| perturbed (start) | 5.00 |", "| ours (perturbed init) |", "| colmap (start) |", "MTA(3,0.1)", "| none |", "| tiny-b | rear | 4 |"):
+    for expected in ("| perturbed (start) | 5.00 |", "| ours (perturbed init) |", "| colmap (start) |", "MTA(3,0.1)", "| none |", "| tiny-b | rear | 4 |",
+                     "| 8, 0.13, 8% | short | 3 |", "| 8, 0.13, 8% | wide-short | 3 |", "| outcome (ground truth) | registered |", "Accurate results flagged registered"):
         assert expected in results, expected
     assert (output / "robustness_noise.png").stat().st_size > 0 and (output / "robustness_size.png").stat().st_size > 0
 

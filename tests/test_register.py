@@ -426,14 +426,14 @@ def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(re
 
 def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, ground_truth, monkeypatch):
     """Targets rendered by the model at the truth (for every stage), a start 12° / 0.1 / 10% away: a coarse stage,
-    8 rotated hypotheses of which 3 are optimised, then the main stage end at the truth; history and step count
-    follow the stages."""
+    27 hypotheses (the start and 8 rotations, each at 3 scales) of which 3 are optimised, then the main stage end
+    at the truth; history and step count follow the stages."""
     from sg_nerfstudio.registration import optimize
 
     original = optimize.prepare_photos
     monkeypatch.setattr(optimize, "prepare_photos", lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s))
     settings = RegistrationSettings(**{**FAST, "steps": 60, "objective": "teacher-on-render", "render_scale": 4.0, "pyramid": (2,),
-                                       "pyramid_steps": 40, "hypotheses": 8})
+                                       "pyramid_steps": 40, "hypotheses": 8, "hypothesis_scales": (0.8, 1.25)})
     start = perturbed_start(meta, ground_truth, 30, 12.0, 0.1, 0.1)
     steps = []
     result = register(reference, meta, start, settings, on_step=lambda step, _: steps.append(step))
@@ -441,6 +441,7 @@ def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, g
     assert errors.rotation_deg < 1.0 and errors.translation < 0.05, errors
     assert len(steps) == optimize.total_steps(settings) == 60 + 3 * 40  # every optimised hypothesis runs the coarse stage
     assert result.steps == 100 and len(result.hypotheses) == 3 and sum(h["agrees_with_winner"] for h in result.hypotheses) >= 1
+    assert all(h["scale"] in (1.0, 0.8, 1.25) for h in result.hypotheses)
     assert [row["stage"] for row in result.history[:: len(meta.photos)]] == ["coarse-64"] * 40 + ["main"] * 60
 
 

@@ -128,6 +128,49 @@ def ablation_table(records: list[dict]) -> list[str]:
     return lines
 
 
+def noise_table(records: list[dict], preset: str) -> list[str]:
+    """Per noise level and preset: MTA, mean and median ΔR / ΔT after, mean wall time (the noise runs' starts)."""
+    groups: dict[tuple[float, str], list[dict]] = defaultdict(list)
+    for r in records:
+        if r["family"] == "noise":
+            groups[(float(r["label"]), r.get("mode") or preset)].append(r)
+    if not groups:
+        return []
+    lines = ["| start (°, ΔT, scale) | preset | runs | MTA (%) | ΔR (°) mean / median | ΔT mean / median | mean s |", "|---|---|---|---|---|---|---|"]
+    for (level, mode), runs in sorted(groups.items(), key=lambda item: (item[0][0], item[0][1] != preset, item[0][1])):
+        done = [r["after"] for r in runs if r["after"] is not None]
+        m = row_metrics([r["after"] for r in runs])
+        digits = {"dR": 2, "dT": 3}
+        both = lambda key: f"{statistics.mean(e[key] for e in done):.{digits[key]}f} / {statistics.median(e[key] for e in done):.{digits[key]}f}" if done else "-"
+        mta = f"{m['MTA']:.0f}" if m["MTA"] is not None else "-"
+        seconds = statistics.mean(r["refine_time_s"] for r in runs)
+        lines.append(f"| {level:g}, {level / 60:.2f}, {level:g}% | {mode} | {len(runs)} | {mta} | {both('dR')} | {both('dT')} | {seconds:.0f} |")
+    return lines
+
+
+VERDICTS = ("registered", "uncertain", "failed")
+
+
+def verdict_table(records: list[dict]) -> list[str]:
+    """Confusion of the verdict (no ground truth) with the outcome by the paper's thresholds, over every run
+    with a verdict; and the two shares the verdict is judged by."""
+    counts: dict[str, dict[str, int]] = {outcome: dict.fromkeys(VERDICTS, 0) for outcome in ("accurate", "in between", "outlier")}
+    for r in records:
+        if r.get("verdict") and r["after"] is not None:
+            e = r["after"]
+            outcome = "accurate" if e["dR"] < 5 and e["dT"] < 0.2 else "outlier" if e["dR"] > 10 or e["dT"] > 0.5 else "in between"
+            counts[outcome][r["verdict"]] += 1
+    if not any(sum(row.values()) for row in counts.values()):
+        return []
+    lines = ["| outcome (ground truth) | registered | uncertain | failed |", "|---|---|---|---|"]
+    lines += [f"| {outcome} | " + " | ".join(str(row[v]) for v in VERDICTS) + " |" for outcome, row in counts.items()]
+    share = lambda hits, total: f"{100 * hits / total:.0f}% ({hits}/{total})" if total else "-"
+    accurate, outlier = counts["accurate"], counts["outlier"]
+    lines += ["", f"Accurate results flagged registered: {share(accurate['registered'], sum(accurate.values()))}; "
+              f"outliers flagged uncertain or failed: {share(outlier['uncertain'] + outlier['failed'], sum(outlier.values()))}."]
+    return lines
+
+
 def robustness_curves(records: list[dict], directory: Path) -> list[str]:
     """PNG curves of the final error against the start's rotation noise and the meta-image size."""
     written = []
@@ -137,7 +180,7 @@ def robustness_curves(records: list[dict], directory: Path) -> list[str]:
     ):
         groups: dict[float, list[dict]] = defaultdict(list)
         for r in records:
-            if r["family"] == family and r["after"] is not None:
+            if r["family"] == family and r["after"] is not None and not r.get("mode"):
                 groups[key(r)].append(r["after"])
         if family == "size":  # the full meta-images, from the perturbed start
             for r in records:
@@ -159,7 +202,7 @@ def robustness_curves(records: list[dict], directory: Path) -> list[str]:
     return written
 
 
-def write_results(output: Path, records: list[dict], initialisers: tuple[str, ...], header: list[str]) -> Path:
+def write_results(output: Path, records: list[dict], initialisers: tuple[str, ...], header: list[str], preset: str = "fast-cpu") -> Path:
     """results.csv, the PNG curves and results.md (which links them) in `output`."""
     write_csv(output / "results.csv", records)
     curves = robustness_curves(records, output)
@@ -174,6 +217,12 @@ def write_results(output: Path, records: list[dict], initialisers: tuple[str, ..
     ablations = ablation_table(records)
     if ablations:
         sections += ["## Ablations (from the perturbed start)", "", *ablations, ""]
+    noise = noise_table(records, preset)
+    if noise:
+        sections += ["## From noisy starts (ground truth moved by the start's rotation, translation and scale)", "", *noise, ""]
+    verdicts = verdict_table(records)
+    if verdicts:
+        sections += ["## Verdict against the ground truth (accurate: ΔR < 5° and ΔT < 0.2; outlier: ΔR > 10° or ΔT > 0.5)", "", *verdicts, ""]
     if curves:
         sections += ["## Robustness curves", "", *[f"![{name}]({name})" for name in curves], ""]
     path = output / "results.md"

@@ -11,7 +11,9 @@ Runs per meta-image (`RunSpec.name`):
   errors (Table 1's baseline rows) and the registration's (the "ours (... init)" rows);
 - `ablation-<row>` for each of `--ablations` (settings changed as in the registration benchmark), from the
   `perturbed` start;
-- `noise-<deg>` for each of `--noise-levels`: rotation noise only, from the ground truth;
+- `noise-<deg>[-s<k>]` for each of `--noise-levels` (`--noise-samples` random directions each): the ground truth moved by <deg>° about a random axis, with
+  translation and scale noise in proportion (`NOISE_PER_DEGREE`: 30° comes with 0.5 scene units and 30%, the
+  wide-basin start), and `noise-<deg>@<preset>` for each of `--compare-config` (the same start, another preset);
 - `size-<n>-<k>` for each of `--sizes` smaller than the meta-image: k-th random subset of n photos
   (`--size-samples` of them), from the `perturbed` start (the supplement's limitations figure).
 """
@@ -41,6 +43,8 @@ from sg_nerfstudio.registration.settings import RegistrationSettings
 PERTURBED_START = (5.0, 0.1, 0.1)
 """Rotation (degrees), translation (scene units) and scale fraction of the `perturbed` start (also the
 registration benchmark's and the demo's)."""
+NOISE_PER_DEGREE = (1.0 / 60.0, 0.01)
+"""Translation (scene units) and scale fraction per degree of a `noise-<deg>` start (30°: 0.5 and 30%)."""
 ABLATIONS = {
     "full": {},
     "decoded-features": {"objective": "features"},
@@ -63,6 +67,9 @@ class BenchOptions:
     sizes: tuple[int, ...] = ()
     size_samples: int = 1
     seed: int = 0
+    noise_samples: int = 1
+    alternatives: dict[str, RegistrationSettings] = field(default_factory=dict)
+    """Other presets (name -> settings) the noise runs are repeated with."""
 
 
 @dataclass
@@ -77,13 +84,18 @@ class RunSpec:
     rotation_noise_deg: float = 0.0
     subset_size: int = 0
     sample: int = 0
+    mode: str = ""  # an entry of BenchOptions.alternatives; "" = the main preset
 
 
 def planned_runs(options: BenchOptions, n_photos: int) -> list[RunSpec]:
     """Every run for one meta-image of `n_photos` photos, in execution order."""
     runs = [RunSpec(init, "table1", init, init) for init in options.initialisers]
     runs += [RunSpec(f"ablation-{name}", "ablation", "perturbed", name, ABLATIONS[name]) for name in options.ablations]
-    runs += [RunSpec(f"noise-{level:g}", "noise", "noise", f"{level:g}", rotation_noise_deg=level) for level in options.noise_levels]
+    runs += [
+        RunSpec(f"noise-{level:g}" + (f"-s{sample}" if sample else "") + (f"@{mode}" if mode else ""), "noise", "noise", f"{level:g}",
+                rotation_noise_deg=level, sample=sample, mode=mode)
+        for level in options.noise_levels for sample in range(options.noise_samples) for mode in ["", *options.alternatives]
+    ]
     runs += [
         RunSpec(f"size-{size}-{sample}", "size", "perturbed", str(size), subset_size=size, sample=sample)
         for size in options.sizes if 3 <= size < n_photos for sample in range(options.size_samples)
@@ -152,12 +164,13 @@ class SceneRunner:
         record = {
             "scene": self.scene.name, "meta": meta.name, "photos": len(subject.photos), "run": spec.name, "family": spec.family,
             "start": spec.start, "label": spec.label, "init_failure": failure, "init_time_s": time.perf_counter() - started,
-            "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0,
+            "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0, "mode": spec.mode, "verdict": None,
         }
         poses = subject.poses
         if start is not None:
             record["before"] = summary(pose_errors(poses, start, meta.ground_truth))
-            settings = replace(self.options.settings, seed=seed, **spec.overrides)
+            base = self.options.alternatives[spec.mode] if spec.mode else self.options.settings
+            settings = replace(base, seed=seed, **spec.overrides)
             try:
                 result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step))
             except (InputError, FloatingPointError) as error:
@@ -165,6 +178,8 @@ class SceneRunner:
             else:
                 record["after"] = summary(pose_errors(poses, result.transform, meta.ground_truth))
                 record["refine_time_s"] = result.wall_time_s
+                record["verdict"], record["verdict_reasons"] = result.verdict.label, result.verdict.reasons
+                record["verdict_evidence"] = result.verdict.as_record()["evidence"]
         write_json_atomically(record_path(self.output, self.scene.name, meta.name, spec.name), record)
         return record
 
@@ -179,7 +194,8 @@ class SceneRunner:
                 except InputError as error:  # e.g. the reference images share too few SIFT matches
                     self.reference_unusable = str(error)
             return None, self.reference_unusable
-        noise = (spec.rotation_noise_deg, 0.0, 0.0) if spec.start == "noise" else PERTURBED_START
+        degrees = spec.rotation_noise_deg
+        noise = (degrees, degrees * NOISE_PER_DEGREE[0], degrees * NOISE_PER_DEGREE[1]) if spec.start == "noise" else PERTURBED_START
         return perturbed(truth, subject.centres, rng, *noise), None
 
 

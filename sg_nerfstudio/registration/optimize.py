@@ -182,11 +182,13 @@ def register(
             current, step = optimise_stage(stage, meta, current, settings, history, step, report)
 
     final_losses, trimmed = final_evaluation(main.losses, current, settings)
+    probing = time.perf_counter()
     evidence = gather_evidence(main.losses, meta, current, final_losses, initial_losses, settings.robust, settings.lts_percentile)
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
     timings = {key: sum(stage.losses.timings[key] for stage in stages) for key in main.losses.timings}
+    timings["verdict"] = time.perf_counter() - probing  # the probes' renders (also counted in "render" and "loss")
     return RegistrationResult(
         transform=ns_to_world @ current,
         initial_transform=initial_world.numpy(),
@@ -285,12 +287,13 @@ def best_hypothesis(
     on_step: Optional[Callable[[int, Sim3], None]],
 ) -> tuple[Sim3, list[dict], int]:
     """Several starts around `start_ns`: the start and `settings.hypotheses` rotations of `hypothesis_deg` about
-    axes spread over the sphere (about the cameras' centroid). The `hypotheses_kept` with the lowest robust
+    axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales` factor. The `hypotheses_kept` with the lowest robust
     objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
     stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
 
     Returns (winner, one record per optimised hypothesis, the next step number)."""
-    candidates = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
+    rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
+    candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypothesis_scales) for axis, transform in rotated]
     score = lambda losses, transform: trimmed_mean(objective_at(losses, transform), settings.lts_percentile, settings.robust)
     scores = [score(stage.losses, transform) for _, transform in candidates]
     runs = []
@@ -301,9 +304,9 @@ def best_hypothesis(
     winner, _, winner_history, _, _ = min(runs, key=lambda run: run[1])
     history.extend(winner_history)
     records = [
-        {"axis": axis, "start_objective_coarse": start_score, "final_objective": final_score,
+        {"axis": axis, "scale": factor, "start_objective_coarse": start_score, "final_objective": final_score,
          "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
-        for final, final_score, _, axis, start_score in runs
+        for final, final_score, _, (axis, factor), start_score in runs
     ]
     return winner, records, first_step + stage.steps
 
@@ -324,6 +327,15 @@ def hypotheses_around(start_ns: Sim3, meta: MetaImage, count: int, angle_deg: fl
         delta[:3] = torch.from_numpy(axis * np.radians(angle_deg))
         hypotheses.append((axis.round(4).tolist(), (Sim3.update(delta, centre) @ start_ns.to_torch()).numpy()))
     return hypotheses
+
+
+def scaled_about_centroid(transform: Sim3, meta: MetaImage, factor: float) -> Sim3:
+    """`transform` (meta -> dataparser) followed by a scaling by `factor` about the moved cameras' centroid."""
+    if factor == 1.0:
+        return transform
+    delta = torch.zeros(7, dtype=torch.float64)
+    delta[6] = float(np.log(factor))
+    return (Sim3.update(delta, torch.from_numpy(meta.centroid_under(transform))) @ transform.to_torch()).numpy()
 
 
 def rotation_between_deg(a: Sim3, b: Sim3) -> float:

@@ -6,7 +6,9 @@
    directories), one sentence per problem;
 2. for each meta-image: its initial transform (identity, a JSON file, or an initialiser: `colmap`,
    `generalized`), then `register()` and the outputs (`outputs.write_outputs`);
-3. print the summary table; with several meta-images, assemble `<output-dir>/merged/` (`merge.py`).
+3. print the summary table (with each result's verdict, `verdict.py`); with several meta-images, assemble
+   `<output-dir>/merged/` (`merge.py`) from those whose verdict is not `failed`. `fails()` tells
+   ns-register-meta which meta-images trip `--fail-on`.
 
 An initialiser that fails for one meta-image is reported in one sentence and that meta-image gets no
 result directory; the others are still registered.

@@ -29,6 +29,7 @@ from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import set_colmap_verbosity
+from sg_nerfstudio.registration.optimize import total_steps
 from sg_nerfstudio.registration.settings import load_preset
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.scripts.cli import cli_main
@@ -46,7 +47,7 @@ class BenchArgs:
     output: Path
     """Results, trained references and per-run records; reused when the command is run again."""
     config: str = "fast-cpu"
-    """Registration preset: a name (paper, fast-cpu, fast-cpu-features) or a YAML file."""
+    """Registration preset: a name (paper, fast-cpu, fast-cpu-features, wide-cpu) or a YAML file."""
     train_steps: int = 1500
     """Training steps of each reference model (CPU, offline teacher); 1500 trains each reference of the default
     suite in under 2 minutes on a 2-core CPU (93-107 s measured; the demo and the feature benchmark train 3000)."""
@@ -56,7 +57,12 @@ class BenchArgs:
     ablations: tuple[Ablation, ...] = ()
     """Ablation rows to run from the perturbed start (e.g. full photometric l2 none fixed-lts irls)."""
     noise_levels: tuple[float, ...] = ()
-    """Rotation noise (degrees) of extra starts, for the curve of final error vs initial noise."""
+    """Rotation noise (degrees) of extra starts from the ground truth, with translation and scale noise in
+    proportion (30°: 0.5 scene units and 30%): the noise table and the curve of final error vs initial noise."""
+    noise_samples: int = 1
+    """Random start directions per noise level and meta-image."""
+    compare_config: tuple[str, ...] = ()
+    """Other presets (names or YAML files) the noise runs are repeated with, from the same starts (e.g. wide-cpu)."""
     sizes: tuple[int, ...] = ()
     """Meta-image sizes (>= 3) of random photo subsets, for the curve of final error vs meta-image size."""
     size_samples: int = 1
@@ -76,6 +82,7 @@ def run(args: BenchArgs, console: Console) -> Path:
     options = BenchOptions(
         settings=load_preset(args.config), train_steps=args.train_steps, initialisers=args.initialisers,
         ablations=args.ablations, noise_levels=args.noise_levels, sizes=args.sizes, size_samples=args.size_samples, seed=args.seed,
+        noise_samples=args.noise_samples, alternatives={Path(name).stem: load_preset(name) for name in args.compare_config},
     )
     args.output.mkdir(parents=True, exist_ok=True)
     train_seconds = {}
@@ -90,7 +97,7 @@ def run(args: BenchArgs, console: Console) -> Path:
             for meta in scene.metas:
                 loaded = load_meta_image(meta.directory)
                 for spec in runner.pending(meta, len(loaded.photos)):
-                    progress.reset(step_task, total=options.settings.steps, description=f"{scene.name}/{meta.name}: {spec.name}")
+                    progress.reset(step_task, total=total_steps(options.alternatives.get(spec.mode, options.settings)), description=f"{scene.name}/{meta.name}: {spec.name}")
                     record = runner.run(meta, loaded, spec, lambda s: progress.update(step_task, completed=s + 1))
                     console.print(describe(record))
             progress.remove_task(step_task)
@@ -103,7 +110,7 @@ def run(args: BenchArgs, console: Console) -> Path:
         f"Wall time of this invocation: {time.perf_counter() - started:.0f} s; total compute over all invocations "
         f"(training + initialisation + registration): {compute:.0f} s.",
     ]
-    path = write_results(args.output, records, args.initialisers, header)
+    path = write_results(args.output, records, args.initialisers, header, Path(args.config).stem)
     console.print(f"Results: {path} and {args.output / 'results.csv'}")
     return path
 

@@ -432,8 +432,8 @@ def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, g
 
     original = optimize.prepare_photos
     monkeypatch.setattr(optimize, "prepare_photos", lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s))
-    settings = RegistrationSettings(**{**FAST, "steps": 60, "objective": "teacher-on-render", "render_scale": 4.0, "pyramid": (2,),
-                                       "pyramid_steps": 40, "hypotheses": 8, "hypothesis_scales": (0.8, 1.25)})
+    settings = RegistrationSettings(**{**FAST, "steps": 60, "lr": 0.01, "lr_final": 0.0005, "objective": "teacher-on-render", "render_scale": 4.0,
+                                       "pyramid": (2,), "pyramid_steps": 40, "hypotheses": 8, "hypothesis_scales": (0.8, 1.25)})
     start = perturbed_start(meta, ground_truth, 30, 12.0, 0.1, 0.1)
     steps = []
     result = register(reference, meta, start, settings, on_step=lambda step, _: steps.append(step))

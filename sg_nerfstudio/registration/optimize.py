@@ -62,16 +62,14 @@ class BatchSchedule:
         self.count, self.per_step = count, per_step or count
         self.rng = np.random.default_rng(seed)
         self.queue: list[int] = []
-        self.last: list[int] = []
 
     def next(self) -> list[int]:
         if self.per_step >= self.count:
-            self.last = list(range(self.count))
-            return self.last
+            return list(range(self.count))
         while len(self.queue) < self.per_step:
             self.queue.extend(self.rng.permutation(self.count).tolist())
-        self.last, self.queue = self.queue[: self.per_step], self.queue[self.per_step :]
-        return self.last
+        batch, self.queue = self.queue[: self.per_step], self.queue[self.per_step :]
+        return batch
 
 
 class History:
@@ -136,12 +134,13 @@ def robust_step(
     return values, kept, weights
 
 
-def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: RegistrationSettings) -> tuple[Array, float]:
-    """[P] losses at the final transform and their trimmed mean (the kept percentile, or all without LTS)."""
+def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: RegistrationSettings) -> tuple[Array, Array, float]:
+    """[P] losses and [P] coverage at the final transform, and the losses' trimmed mean (the kept percentile, or
+    all without LTS)."""
     with torch.no_grad():
-        values, _ = losses(final_ns.to_torch(), list(range(len(losses.photos))))
+        values, coverage = losses(final_ns.to_torch(), list(range(len(losses.photos))))
     final = torch.stack(values).double().numpy()
-    return final, trimmed_mean(final, settings.lts_percentile, settings.robust)
+    return final, coverage.double().numpy(), trimmed_mean(final, settings.lts_percentile, settings.robust)
 
 
 def register(
@@ -179,11 +178,12 @@ def register(
         if index == 0 and settings.hypotheses > 0:
             current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, report)
         else:
-            current, step = optimise_stage(stage, meta, current, settings, history, step, report)
+            seed = initial_losses if stage is main and index == 0 else None  # the start's losses are known already
+            current, step = optimise_stage(stage, meta, current, settings, history, step, report, seed)
 
-    final_losses, trimmed = final_evaluation(main.losses, current, settings)
+    final_losses, final_coverage, trimmed = final_evaluation(main.losses, current, settings)
     probing = time.perf_counter()
-    evidence = gather_evidence(main.losses, meta, current, final_losses, initial_losses, settings.robust, settings.lts_percentile)
+    evidence = gather_evidence(main.losses, meta, current, final_losses, final_coverage, initial_losses, settings.robust, settings.lts_percentile)
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
@@ -252,12 +252,14 @@ def coarse_stages(reference: ReferenceModel, meta: MetaImage, settings: Registra
 
 def optimise_stage(
     stage: Stage, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
-    on_step: Optional[Callable[[int, Sim3], None]],
+    on_step: Optional[Callable[[int, Sim3], None]], start_losses: Optional[Array] = None,
 ) -> tuple[Sim3, int]:
     """Adam on delta for `stage.steps` steps from `start_ns` (meta -> dataparser), recorded in `history` from
-    step `first_step` on; (the estimate at the end, the next step number)."""
+    step `first_step` on; (the estimate at the end, the next step number). `start_losses`: [P] the stage's
+    per-photo losses at `start_ns` if known (they seed the robust loss), else computed."""
     losses = stage.losses
-    aggregator = RobustAggregator(settings.robust, settings.lts_percentile, objective_at(losses, start_ns))
+    seed = start_losses if start_losses is not None else objective_at(losses, start_ns)
+    aggregator = RobustAggregator(settings.robust, settings.lts_percentile, seed)
     start = start_ns.to_torch()
     centre = torch.from_numpy(meta.centroid_under(start_ns))
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
@@ -287,8 +289,8 @@ def best_hypothesis(
     on_step: Optional[Callable[[int, Sim3], None]],
 ) -> tuple[Sim3, list[dict], int]:
     """Several starts around `start_ns`: the start and `settings.hypotheses` rotations of `hypothesis_deg` about
-    axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales` factor. The `hypotheses_kept` with the lowest robust
-    objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
+    axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales`
+    factor. The `hypotheses_kept` with the lowest robust objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
     stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
 
     Returns (winner, one record per optimised hypothesis, the next step number)."""
@@ -317,7 +319,6 @@ HYPOTHESIS_AGREEMENT_DEG = 2.0
 
 def hypotheses_around(start_ns: Sim3, meta: MetaImage, count: int, angle_deg: float) -> list[tuple[list[float], Sim3]]:
     """`count` (axis, Sim3): `start_ns` rotated by `angle_deg` about the cameras' centroid, axes on a Fibonacci sphere."""
-    centre = torch.from_numpy(meta.centroid_under(start_ns))
     golden = np.pi * (3.0 - np.sqrt(5.0))
     hypotheses = []
     for k in range(count):
@@ -325,7 +326,7 @@ def hypotheses_around(start_ns: Sim3, meta: MetaImage, count: int, angle_deg: fl
         axis = np.array([np.sqrt(1 - z * z) * np.cos(golden * k), np.sqrt(1 - z * z) * np.sin(golden * k), z])
         delta = torch.zeros(7, dtype=torch.float64)
         delta[:3] = torch.from_numpy(axis * np.radians(angle_deg))
-        hypotheses.append((axis.round(4).tolist(), (Sim3.update(delta, centre) @ start_ns.to_torch()).numpy()))
+        hypotheses.append((axis.round(4).tolist(), moved_about_centroid(start_ns, meta, delta)))
     return hypotheses
 
 
@@ -335,6 +336,12 @@ def scaled_about_centroid(transform: Sim3, meta: MetaImage, factor: float) -> Si
         return transform
     delta = torch.zeros(7, dtype=torch.float64)
     delta[6] = float(np.log(factor))
+    return moved_about_centroid(transform, meta, delta)
+
+
+def moved_about_centroid(transform: Sim3, meta: MetaImage, delta: Tensor) -> Sim3:
+    """U(delta) about the centroid of the cameras moved by `transform`, then `transform` (numpy Sim3s,
+    meta -> dataparser; delta [7] = (omega, nu, log s))."""
     return (Sim3.update(delta, torch.from_numpy(meta.centroid_under(transform))) @ transform.to_torch()).numpy()
 
 

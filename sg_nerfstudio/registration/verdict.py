@@ -113,27 +113,26 @@ def probes(rotation: float, translation: float) -> list[Tensor]:
 
 
 def gather_evidence(
-    losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, initial_losses: Array, robust: str, percentile: float,
+    losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, coverage: Array, initial_losses: Array, robust: str, percentile: float,
 ) -> Evidence:
     """Render the probes around `final_ns` (meta -> dataparser) and measure the evidence.
 
     Args:
         losses: the registration's `objectives.PhotoLosses`.
         final_losses, initial_losses: [P] per-photo losses at the result and at the start.
+        coverage: [P] fraction of each photo's render the model covers at the result.
     """
     indices = list(range(len(losses.photos)))
     rotation, translation = probe_sizes(meta, losses.photos, losses.objective.teacher.grid_size, final_ns)
     start = final_ns.to_torch()
     centre = torch.from_numpy(meta.centroid_under(final_ns))
     with torch.no_grad():
-        _, coverage = losses(start, indices)
         probe_losses = np.stack([
             torch.stack(losses(Sim3.update(delta, centre) @ start, indices)[0]).double().numpy() for delta in probes(rotation, translation)
         ])  # [12, P]
     final = trimmed_mean(final_losses, percentile, robust)
     rises = np.array([trimmed_mean(row, percentile, robust) for row in probe_losses]) / max(final, 1e-12) - 1.0
     photo_rise = np.median(probe_losses / np.maximum(final_losses, 1e-12)[None] - 1.0, axis=0)
-    coverage = coverage.double().numpy()
     agreeing = (photo_rise >= PHOTO_RISE) & (coverage >= PHOTO_COVERAGE)
     initial = trimmed_mean(initial_losses, percentile, robust)
     return Evidence(

@@ -68,6 +68,7 @@ class RegistrationSettings:
     """With a pyramid: rotations of the start by `hypothesis_deg` about this many axes (a Fibonacci sphere)
     scored at the coarsest stage, besides the start itself; 0: the start only."""
     hypothesis_deg: float = 20.0
+    """Rotation of each hypothesis away from the start (degrees, about the cameras' centroid)."""
     hypothesis_scales: tuple[float, ...] = ()
     """With hypotheses: every rotated candidate (and the start) also scaled by each factor about the cameras'
     centroid (e.g. 0.8 1.25: a log grid around the start's scale)."""

@@ -6,6 +6,7 @@ import copy
 import hashlib
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -23,6 +24,7 @@ from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos, teacher_on_render_target
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import load_reference
+from sg_nerfstudio.registration.robust import TrimmingRule
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.scripts.register_meta import main as register_main
 
@@ -201,6 +203,32 @@ def test_lts_ignores_the_worst_photos(reference, meta, ground_truth):
     assert 0 < sum(kept) < len(kept)
     worst = int(np.argmax(result.initial_losses))
     assert result.ignored_fraction[worst] == pytest.approx(1.0)
+
+
+def test_trimming_rules_drop_only_what_they_should():
+    median_rule, outlier_rule = TrimmingRule("lts"), TrimmingRule("outlier-lts")
+    alike = np.array([0.100, 0.105, 0.110])  # away from the answer: every photo near the same floor
+    assert (alike <= median_rule.threshold(alike)).sum() == 2  # the paper's rule drops one of three anyway
+    assert (alike <= outlier_rule.threshold(alike)).all()
+    one_far = np.array([0.060, 0.062, 0.120])
+    assert (one_far <= outlier_rule.threshold(one_far)).tolist() == [True, True, False]
+    # Two photos that agree closely (MAD ~ 0) do not make a third 25% above them an outlier (scale floor).
+    close = np.array([0.100, 0.1001, 0.125])
+    assert (close <= outlier_rule.threshold(close)).all() and not (np.array([0.1, 0.1001, 0.14]) <= outlier_rule.threshold(np.array([0.1, 0.1001, 0.14]))).all()
+    assert outlier_rule.trimmed_mean(one_far) == pytest.approx(0.061) and TrimmingRule("none").trimmed_mean(one_far) == pytest.approx(one_far.mean())
+
+
+def test_outlier_lts_ignores_a_wrong_photo_and_keeps_the_others(reference, meta, ground_truth):
+    settings = RegistrationSettings(**{**FAST, "steps": 10, "robust": "outlier-lts"})
+    photos = prepare_photos(reference, meta, settings)
+    wrong = copy.copy(photos[1])
+    wrong.target = photos[1].target.flip(0).flip(1)  # the photo seen upside down: no pose explains it
+    photos[1] = wrong
+    result = register(reference, meta, ground_truth, settings, photos=photos)
+    assert result.ignored_fraction[1] == pytest.approx(1.0)
+    assert np.delete(result.ignored_fraction, 1).max() == 0.0
+    median = register(reference, meta, ground_truth, replace(settings, robust="lts"), photos=photos)
+    assert np.delete(median.ignored_fraction, 1).max() > 0.0  # the median rule also drops photos that agree
 
 
 def run_cli(args: list[str], capsys) -> tuple[int, str]:

@@ -11,7 +11,7 @@ it without retraining:
 1. accuracy: `--trials` seeded starts, each the ground truth perturbed by 5°, 0.1 scene units and 10% scale
    in random directions (about the cameras' centroid), alternating meta-images; success = ΔR < 1° and ΔT < 0.05;
 2. ablations: a variant whose meta-images have 30% heavily occluded photos (occluders over 40-60% of the
-   frame) and strong appearance change; rows full, photometric, l2, none, fixed-lts, irls; columns ΔR, ΔT,
+   frame) and strong appearance change; rows full, photometric, l2, none, outlier-lts, fixed-lts, irls; columns ΔR, ΔT,
    MTA, O% over `--ablation-trials` starts per meta-image (`--ablation-start`: their noise, default as in 1.);
 3. speed: a 20-photo meta-image against the model pruned to its 20k most opaque Gaussians, fast preset:
    wall time, steps per second, and the split between render, loss and backward.

@@ -51,6 +51,7 @@ ABLATIONS = {
     "photometric": {"objective": "photometric"},
     "l2": {"loss": "l2"},
     "none": {"robust": "none"},
+    "outlier-lts": {"robust": "outlier-lts"},
     "fixed-lts": {"robust": "fixed-lts"},
     "irls": {"robust": "irls"},
 }

@@ -23,9 +23,9 @@ from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
 from sg_nerfstudio.registration.reference import ReferenceModel
-from sg_nerfstudio.registration.robust import RobustAggregator
+from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule
 from sg_nerfstudio.registration.settings import RegistrationSettings
-from sg_nerfstudio.registration.verdict import Verdict, decide, gather_evidence, trimmed_mean
+from sg_nerfstudio.registration.verdict import Verdict, decide, gather_evidence
 
 Array = np.ndarray
 
@@ -135,12 +135,12 @@ def robust_step(
 
 
 def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: RegistrationSettings) -> tuple[Array, Array, float]:
-    """[P] losses and [P] coverage at the final transform, and the losses' trimmed mean (the kept percentile, or
-    all without LTS)."""
+    """[P] losses and [P] coverage at the final transform, and the losses' trimmed mean (those the robust rule
+    counts)."""
     with torch.no_grad():
         values, coverage = losses(final_ns.to_torch(), list(range(len(losses.photos))))
     final = torch.stack(values).double().numpy()
-    return final, coverage.double().numpy(), trimmed_mean(final, settings.lts_percentile, settings.robust)
+    return final, coverage.double().numpy(), TrimmingRule.of(settings).trimmed_mean(final)
 
 
 def register(
@@ -183,7 +183,7 @@ def register(
 
     final_losses, final_coverage, trimmed = final_evaluation(main.losses, current, settings)
     probing = time.perf_counter()
-    evidence = gather_evidence(main.losses, meta, current, final_losses, final_coverage, initial_losses, settings.robust, settings.lts_percentile)
+    evidence = gather_evidence(main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings))
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
@@ -259,7 +259,7 @@ def optimise_stage(
     per-photo losses at `start_ns` if known (they seed the robust loss), else computed."""
     losses = stage.losses
     seed = start_losses if start_losses is not None else objective_at(losses, start_ns)
-    aggregator = RobustAggregator(settings.robust, settings.lts_percentile, seed)
+    aggregator = RobustAggregator(TrimmingRule.of(settings), seed)
     start = start_ns.to_torch()
     centre = torch.from_numpy(meta.centroid_under(start_ns))
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
@@ -296,7 +296,7 @@ def best_hypothesis(
     Returns (winner, one record per optimised hypothesis, the next step number)."""
     rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
     candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypothesis_scales) for axis, transform in rotated]
-    score = lambda losses, transform: trimmed_mean(objective_at(losses, transform), settings.lts_percentile, settings.robust)
+    score = lambda losses, transform: TrimmingRule.of(settings).trimmed_mean(objective_at(losses, transform))
     scores = [score(stage.losses, transform) for _, transform in candidates]
     runs = []
     for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses_kept)]:

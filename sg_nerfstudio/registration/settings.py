@@ -20,7 +20,7 @@ import yaml
 from sg_nerfstudio.errors import InputError
 
 ObjectiveKind = Literal["features", "teacher-on-render", "photometric"]
-Robust = Literal["lts", "fixed-lts", "irls", "none"]
+Robust = Literal["lts", "outlier-lts", "fixed-lts", "irls", "none"]
 LossKind = Literal["l1", "l2"]
 PRESETS = ("paper", "fast-cpu", "fast-cpu-features", "wide-cpu")
 
@@ -45,9 +45,14 @@ class RegistrationSettings:
     applied to the rendered RGB vs the same maps; photometric: colours vs the photos."""
     loss: LossKind = "l1"
     robust: Robust = "lts"
-    """lts (paper), fixed-lts, irls or none."""
+    """lts (paper: the median rule), outlier-lts (only photos far above the others are ignored), fixed-lts,
+    irls or none (see registration/robust.py)."""
     lts_percentile: float = 50.0
-    """Images with a loss above this percentile of the previous iteration's losses are ignored (50 = median)."""
+    """lts / fixed-lts: images with a loss above this percentile of the previous iteration's losses are
+    ignored (50 = median)."""
+    outlier_z: float = 3.0
+    """outlier-lts: images with a loss above median + outlier_z x robust scale of the previous iteration's
+    losses are ignored."""
     images_per_step: int = 0
     """Photos rendered per step; 0 = all of them (paper)."""
     teacher_input_size: Optional[int] = None

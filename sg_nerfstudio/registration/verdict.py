@@ -7,7 +7,7 @@ teacher grid) and h_t the distance that moves a point at the photos' median spar
 angle, so every probe shifts the image by about one descriptor cell. Evidence:
 
 - `sharpness`: the median over probes of the robust objective's relative rise (T_probe - T) / T, with T the
-  trimmed mean of the per-photo losses (the percentile rule of the registration). A registration that found
+  trimmed mean of the per-photo losses (the robust rule of the registration). A registration that found
   the model sits in a minimum the descriptor resolves; one that sees the wrong thing sits on a plateau.
 - `flattest_rise`: the smallest of those rises; below `DESCENT_TOLERANCE` a probe is better than the result
   (the optimisation stopped on a slope, not in a minimum).
@@ -36,6 +36,7 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.registration.robust import TrimmingRule
 
 Array = np.ndarray
 Label = Literal["registered", "uncertain", "failed"]
@@ -81,13 +82,6 @@ class Verdict:
         return {"verdict": self.label, "reasons": self.reasons, "evidence": asdict(self.evidence)}
 
 
-def trimmed_mean(values: Array, percentile: float, robust: str) -> float:
-    """The registration's robust aggregate of [P] per-photo losses: mean of those at most the percentile."""
-    if robust == "none":
-        return float(values.mean())
-    return float(values[values <= np.percentile(values, percentile)].mean())
-
-
 def probe_sizes(meta: MetaImage, photos, grid_size: int, meta_to_dataparser: Sim3) -> tuple[float, float]:
     """(h_r radians, h_t dataparser units): one teacher cell's angle and the shift that moves a point at the
     median sparse-point depth by that angle. `photos`: PreparedPhoto list (K and render width/height)."""
@@ -113,7 +107,7 @@ def probes(rotation: float, translation: float) -> list[Tensor]:
 
 
 def gather_evidence(
-    losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, coverage: Array, initial_losses: Array, robust: str, percentile: float,
+    losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, coverage: Array, initial_losses: Array, rule: TrimmingRule,
 ) -> Evidence:
     """Render the probes around `final_ns` (meta -> dataparser) and measure the evidence.
 
@@ -121,6 +115,7 @@ def gather_evidence(
         losses: the registration's `objectives.PhotoLosses`.
         final_losses, initial_losses: [P] per-photo losses at the result and at the start.
         coverage: [P] fraction of each photo's render the model covers at the result.
+        rule: the registration's robust rule (the objective T is its trimmed mean).
     """
     indices = list(range(len(losses.photos)))
     rotation, translation = probe_sizes(meta, losses.photos, losses.objective.teacher.grid_size, final_ns)
@@ -130,11 +125,11 @@ def gather_evidence(
         probe_losses = np.stack([
             torch.stack(losses(Sim3.update(delta, centre) @ start, indices)[0]).double().numpy() for delta in probes(rotation, translation)
         ])  # [12, P]
-    final = trimmed_mean(final_losses, percentile, robust)
-    rises = np.array([trimmed_mean(row, percentile, robust) for row in probe_losses]) / max(final, 1e-12) - 1.0
+    final = rule.trimmed_mean(final_losses)
+    rises = np.array([rule.trimmed_mean(row) for row in probe_losses]) / max(final, 1e-12) - 1.0
     photo_rise = np.median(probe_losses / np.maximum(final_losses, 1e-12)[None] - 1.0, axis=0)
     agreeing = (photo_rise >= PHOTO_RISE) & (coverage >= PHOTO_COVERAGE)
-    initial = trimmed_mean(initial_losses, percentile, robust)
+    initial = rule.trimmed_mean(initial_losses)
     return Evidence(
         sharpness=float(np.median(rises)), flattest_rise=float(rises.min()), agreeing_photos=int(agreeing.sum()),
         photos=len(indices), median_coverage=float(np.median(coverage)), objective_drop=1.0 - final / max(initial, 1e-12),

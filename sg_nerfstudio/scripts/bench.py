@@ -2,7 +2,7 @@
 
     sg-make-scene --preset benchmark --output bench
     sg-bench bench --output bench-results [--initialisers colmap generalized perturbed] \\
-        [--ablations full photometric l2 none fixed-lts irls] [--noise-levels 2 5 10 15 20] [--sizes 3 6 10]
+        [--ablations full photometric l2 none outlier-lts fixed-lts irls] [--noise-levels 2 5 10 15 20] [--sizes 3 6 10]
 
 For each scene (layout: sg_nerfstudio/bench/layout.py): train an sg-feature-splat reference on CPU with the
 offline teacher (or reuse one from an earlier run), then for each meta-image run each initialiser and our
@@ -55,7 +55,7 @@ class BenchArgs:
     """Starts of Table 1: the SIFT + pycolmap initialisers (the paper's rows); add `perturbed` for the ground
     truth moved by 5° / 0.1 / 10% (a start that does not depend on SIFT; one more registration per meta-image)."""
     ablations: tuple[Ablation, ...] = ()
-    """Ablation rows to run from the perturbed start (e.g. full photometric l2 none fixed-lts irls)."""
+    """Ablation rows to run from the perturbed start (e.g. full photometric l2 none outlier-lts fixed-lts irls)."""
     noise_levels: tuple[float, ...] = ()
     """Rotation noise (degrees) of extra starts from the ground truth, with translation and scale noise in
     proportion (30°: 0.5 scene units and 30%): the noise table and the curve of final error vs initial noise."""

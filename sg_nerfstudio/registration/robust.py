@@ -9,8 +9,8 @@ previous loss is at most m + z * s, with m the median of the previous losses and
 squares). `none`: the plain mean.
 
 Why `outlier-lts` (README, "The robust loss"): away from the answer every photo's loss sits near the same
-floor (on the real-photo scenes all three photos of a meta-image within 10% of each other from 5° and 15°
-starts), so the median rule drops a photo that is no worse than the others, a third of the evidence of a
+floor (on the real-photo scenes, from 15° starts all three photos of a meta-image within 10% of their
+median, from 5° within 21%), so the median rule drops a photo that is no worse than the others, a third of the evidence of a
 3-photo meta-image, and a different one from step to step. Only near the answer do occluded photos
 separate (a 30%-occluded photo 1.34x the median, 10-20%-occluded ones 1.07-1.12x, clean ones 0.7-1.0x).
 """
@@ -52,9 +52,10 @@ class TrimmingRule:
         return cls(settings.robust, settings.lts_percentile, settings.outlier_z)
 
     def threshold(self, losses: np.ndarray) -> float:
-        """The largest loss that still counts among [P] per-photo `losses` (inf: every photo counts)."""
+        """The largest loss that still counts among [P] per-photo `losses` (inf: every photo counts). irls weighs
+        rather than trims; its reported trimmed loss (and the verdict's objective) uses the percentile."""
         losses = np.asarray(losses, dtype=np.float64)
-        if self.robust in ("lts", "fixed-lts"):
+        if self.robust in ("lts", "fixed-lts", "irls"):
             return float(np.percentile(losses, self.percentile))
         if self.robust == "outlier-lts":
             median = float(np.median(losses))

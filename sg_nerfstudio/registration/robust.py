@@ -47,6 +47,10 @@ class TrimmingRule:
     percentile: float = 50.0  # lts, fixed-lts
     z: float = 3.0  # outlier-lts
 
+    def __post_init__(self):
+        if not 0.0 < self.percentile <= 100.0:
+            raise ValueError(f"LTS percentile must be in (0, 100], got {self.percentile}.")
+
     @classmethod
     def of(cls, settings: RegistrationSettings) -> "TrimmingRule":
         return cls(settings.robust, settings.lts_percentile, settings.outlier_z)
@@ -74,10 +78,7 @@ class RobustAggregator:
 
     def __init__(self, rule: TrimmingRule, initial_losses: np.ndarray):
         """initial_losses: [n_images] losses at the initial transform (seed the "previous iteration")."""
-        if not 0.0 < rule.percentile <= 100.0:
-            raise ValueError(f"LTS percentile must be in (0, 100], got {rule.percentile}.")
         self.rule = rule
-        self.robust = rule.robust
         self.previous = np.asarray(initial_losses, dtype=np.float64).copy()
         self.fixed_keep = self.previous <= rule.threshold(self.previous)
 
@@ -96,15 +97,16 @@ class RobustAggregator:
             the scalar objective, kept [B] bool (whether each image counted), weights [B].
         """
         values = torch.stack([loss.detach() for loss in losses]).double().cpu().numpy()
-        if self.robust in ("lts", "outlier-lts"):
+        robust = self.rule.robust
+        if robust in ("lts", "outlier-lts"):
             kept = values <= self.threshold()
-        elif self.robust == "fixed-lts":
+        elif robust == "fixed-lts":
             kept = self.fixed_keep[indices]
         else:
             kept = np.ones_like(values, dtype=bool)
         if not kept.any():  # every image of this batch is above the threshold: follow the best one
             kept = values == values.min()
-        if self.robust == "irls":
+        if robust == "irls":
             scale = max(float(np.median(self.previous)), 1e-12)
             weights = 1.0 / (1.0 + (values / scale) ** 2)
         else:

@@ -166,8 +166,8 @@ def test_batched_rendering_gives_the_per_photo_losses(reference, meta, ground_tr
 
 def test_culling_to_the_visible_gaussians_gives_the_same_losses_and_recull_follows_the_pose(reference, meta, ground_truth):
     """The culled model renders what the whole model renders, at the cull pose and within the re-cull bounds;
-    a pose beyond them is culled again."""
-    settings = RegistrationSettings(**FAST, objective="teacher-on-render")
+    a pose beyond them is culled again (level of detail off: this checks the cull alone)."""
+    settings = RegistrationSettings(**FAST, objective="teacher-on-render", level_of_detail=0.0)
     objective = build_objective(reference, settings)
     photos = prepare_photos(reference, meta, settings, objective)
     culled = PhotoLosses(reference, photos, objective, settings, 0.01)

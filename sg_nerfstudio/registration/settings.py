@@ -79,6 +79,10 @@ class RegistrationSettings:
     centroid (e.g. 0.8 1.25: a log grid around the start's scale)."""
     hypotheses_kept: int = 3
     """Best-scoring hypotheses (the start included) optimised over the coarsest stage; the lowest end wins."""
+    level_of_detail: float = 1.0
+    """Merge the reference's Gaussians that are far below a render pixel, per voxel of this many render pixels
+    at the nearest photo that sees them (registration/level_of_detail.py: the cost of a step follows the
+    pixels, not the model's size); 0 renders every Gaussian as trained."""
     seed: int = 0
     backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
 

@@ -11,6 +11,10 @@ Why the result is the same image: a Gaussian that reaches a photo at any pose wi
 widened frustum at the cull pose. Widening by 1.6 adds at least 7° of half field of view for fields of view
 up to 140° (10-13° for ordinary 40-90° photos), more than the 4° rotation bound plus the direction change that
 a 3% shift of the camera gives (under 2°). `tests/test_register.py` checks renders with and without culling.
+
+With `level_of_detail` (render pixels, > 0) the culled model is also coarsened for the photos' render size at
+the cull pose (`level_of_detail.coarsen`: Gaussians far below a pixel merged per voxel), so that the cost of a
+step follows the pixels the photos render rather than the size of the reference.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.frames import camera_to_world, viewmat
 from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.registration.level_of_detail import coarsen, footprint_cells
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.render.projection import cull_gaussians
 
@@ -50,8 +55,8 @@ class CullingCamera:
 class VisibleSubset:
     """The reference restricted to what the photos see around the current pose (see the module docstring)."""
 
-    def __init__(self, reference: ReferenceModel, cameras: list[CullingCamera]):
-        self.reference, self.cameras = reference, cameras
+    def __init__(self, reference: ReferenceModel, cameras: list[CullingCamera], level_of_detail: float = 0.0):
+        self.reference, self.cameras, self.level_of_detail = reference, cameras, level_of_detail
         self.centres = np.stack([camera_to_world(c.cam_from_meta.numpy())[:, 3] for c in cameras]) if cameras else np.zeros((0, 3))
         self.pose: Sim3 | None = None  # meta -> dataparser at the last cull (numpy)
         self.depths = np.zeros(len(cameras))  # median depth of the Gaussians each camera saw then
@@ -75,17 +80,23 @@ class VisibleSubset:
     @torch.no_grad()
     def cull(self, pose: Sim3) -> None:
         means, covars = self.reference.means, self.reference.covars
-        visible = torch.zeros(means.shape[0], dtype=torch.bool)
+        depths = torch.empty(len(self.cameras), means.shape[0])
+        inside = torch.zeros(len(self.cameras), means.shape[0], dtype=torch.bool)
         on_torch = pose.to_torch()
         for index, camera in enumerate(self.cameras):
             view = viewmat(on_torch.move_camera(camera.cam_from_meta)).float()[None]
             wide = camera.K.clone()[None]
             wide[:, 0, 0] /= WIDEN
             wide[:, 1, 1] /= WIDEN
-            depths, inside = cull_gaussians(means, covars, view, wide, camera.width, camera.height, near_plane=CULL_NEAR)
-            seen = depths[0][inside[0]]
+            camera_depths, camera_inside = cull_gaussians(means, covars, view, wide, camera.width, camera.height, near_plane=CULL_NEAR)
+            depths[index], inside[index] = camera_depths[0], camera_inside[0]
+            seen = camera_depths[0][camera_inside[0]]
             self.depths[index] = float(seen.median()) if seen.numel() else float("inf")
-            visible |= inside[0]
+        ids = torch.nonzero(inside.any(dim=0)).squeeze(1)
         self.pose = pose
-        self.subset = self.reference.subset(torch.nonzero(visible).squeeze(1))
+        self.subset = self.reference.subset(ids)
+        if self.level_of_detail > 0 and ids.numel():
+            focal = torch.stack([camera.K[:2, :2].diagonal().max() for camera in self.cameras]).float()
+            cells = footprint_cells(depths[:, ids], focal, inside[:, ids], self.level_of_detail)
+            self.subset = coarsen(self.subset, cells)
         self.culls += 1

@@ -1,0 +1,274 @@
+"""Registration cost at the size of real references: time per step and peak memory against the model's size.
+
+    python -m sg_nerfstudio.bench.scaling --load-config <sg-feature-splat config.yml> \\
+        --meta-image <scene>/meta/front [--sizes 100000 300000 1000000] [--device cpu|cuda]
+
+Real references hold 0.5-5 million Gaussians; the synthetic ones this project trains on a CPU hold tens of
+thousands. The benchmark therefore *densifies* the given trained model to each size and writes it as a real
+checkpoint (a copy of the run whose `step-*.ckpt` holds the larger model): every Gaussian is split into k
+children drawn from its own distribution (means ~ N(mu, (1 - s^2) Sigma), covariance s^2 Sigma with
+s = k^(-1/3), same opacity, colours and features), which keeps the model's look and puts k times as many
+Gaussians, each smaller, on the same surfaces, as training a real landmark longer would.
+
+Per size, in a fresh process each (so that peak memory is that size's alone), for today's path (cull only,
+`--level-of-detail 0`) and the level-of-detail path (`--level-of-detail 1`, the default):
+- load: `load_reference` of the densified checkpoint (s);
+- prepare: the first cull (and merge) around the start (s) and the Gaussians a step then renders;
+- step: median wall time of `--steps` forward renders of every photo + the pose-only backward;
+- peak resident memory of the process (ru_maxrss);
+- with `--register`: a whole registration (the preset's steps, 5° / 0.1 / 10% start, verdict included) on
+  the level-of-detail path: wall time, ΔR / ΔT against the meta-image's `gt_transform.json`.
+
+Then `--concurrency`: the same registration of the base model twice at once and once alone, each process
+with the default `--threads` (the cores this process may use): each concurrent run's time over the solo one.
+
+Everything is printed as tables (ratios to today's path in the same run) and written to `--output` (JSON).
+Run it alone on the machine: other jobs change every figure.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+MODES = {"today": 0.0, "lod": 1.0}
+"""Benchmark paths by name: the `level_of_detail` each runs with."""
+
+
+@dataclass
+class Args:
+    load_config: Path
+    """config.yml of the trained sg-feature-splat to densify."""
+    meta_image: Path
+    """A meta-image directory with `gt_transform.json` (e.g. sg-demo's scene/meta/front)."""
+    sizes: tuple[int, ...] = (100_000, 300_000, 1_000_000)
+    """Gaussians of the densified references."""
+    config: str = "fast-cpu"
+    """Registration preset (name or YAML)."""
+    steps: int = 5
+    """Timed steps per size and path (the first, which builds the cull, is not among them)."""
+    register: bool = True
+    """Also run a whole registration per size on the level-of-detail path."""
+    register_today_below: int = 150_000
+    """Run today's path as a whole registration too for sizes up to this many Gaussians (slow above)."""
+    concurrency: bool = True
+    device: Literal["cpu", "cuda"] = "cpu"
+    threads: Optional[int] = None
+    """Threads of each process (default: the cores it may use)."""
+    work_dir: Optional[Path] = None
+    """Where the densified runs are written (default: a temporary directory, removed at the end)."""
+    output: Path = Path("benchmark_scaling.json")
+    seed: int = 0
+
+
+@dataclass
+class ChildArgs:
+    """One measurement in its own process (the benchmark runs itself with `child`)."""
+
+    load_config: Path
+    meta_image: Path
+    config: str
+    level_of_detail: float
+    steps: int
+    register: bool
+    device: str
+    threads: Optional[int]
+    seed: int
+
+
+def densify_run(config_path: Path, gaussians: int, target: Path, seed: int) -> Path:
+    """A copy of the trained run at `config_path` whose checkpoint holds `gaussians` Gaussians (module docstring)."""
+    from sg_nerfstudio.splat.trained import open_trained_run
+
+    run = open_trained_run(config_path)
+    state = torch.load(run.checkpoints[-1], map_location="cpu", weights_only=False)
+    prefix = "_model.gauss_params."
+    params = {key[len(prefix):]: value for key, value in state["pipeline"].items() if key.startswith(prefix)}
+    count = params["means"].shape[0]
+    generator = torch.Generator().manual_seed(seed)
+    children = torch.full((count,), gaussians // count, dtype=torch.long)
+    children[torch.randperm(count, generator=generator)[: gaussians % count]] += 1
+    parent = torch.repeat_interleave(torch.arange(count), children)
+    shrink = children.double().pow(-1.0 / 3.0)[parent]  # s = k^(-1/3) per child
+    from sg_nerfstudio.render.projection import quat_to_rotmat
+
+    scales = torch.exp(params["scales"].double())[parent]
+    rotations = quat_to_rotmat(params["quats"].double())[parent]
+    spread = torch.sqrt((1.0 - shrink**2).clamp(min=0.0))[:, None] * scales
+    offsets = (rotations @ (spread * torch.randn(parent.shape[0], 3, generator=generator, dtype=torch.float64))[:, :, None])[:, :, 0]
+    dense = {name: value[parent].clone() for name, value in params.items()}
+    dense["means"] = (params["means"].double()[parent] + offsets).to(params["means"].dtype)
+    dense["scales"] = torch.log(scales * shrink[:, None]).to(params["scales"].dtype)
+    pipeline = {key: value for key, value in state["pipeline"].items() if not key.startswith(prefix)}
+    pipeline.update({prefix + name: value for name, value in dense.items()})
+    target.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(run.config_path, target / "config.yml")
+    shutil.copy2(run.config_path.parent / "dataparser_transforms.json", target / "dataparser_transforms.json")
+    model_dir = target / run.config.relative_model_dir
+    model_dir.mkdir(parents=True, exist_ok=True)
+    torch.save({"step": state["step"], "pipeline": pipeline}, model_dir / run.checkpoints[-1].name)
+    return target / "config.yml"
+
+
+def measure(args: ChildArgs) -> dict:
+    """Load, cull, time steps and optionally register (see the module docstring); runs in its own process."""
+    from sg_nerfstudio.geometry.meta_image import load_meta_image
+    from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
+    from sg_nerfstudio.registration.metrics import pose_errors
+    from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos
+    from sg_nerfstudio.registration.optimize import effective_near_plane, register
+    from sg_nerfstudio.registration.reference import load_reference
+    from sg_nerfstudio.registration.settings import load_preset
+    from sg_nerfstudio.render.threads import set_threads
+
+    threads = set_threads(args.threads)
+    settings = replace(load_preset(args.config), level_of_detail=args.level_of_detail, seed=args.seed)
+    started = time.perf_counter()
+    reference = load_reference(args.load_config, device=args.device)
+    loaded = time.perf_counter() - started
+    meta = load_meta_image(args.meta_image)
+    truth = Sim3.read_json(args.meta_image / "gt_transform.json", "Ground truth")
+    start = perturbed(truth, meta.centres, np.random.default_rng(args.seed), 5.0, 0.1, 0.1)
+    objective = build_objective(reference, settings)
+    photos = prepare_photos(reference, meta, settings, objective)
+    start_ns = reference.world_to_dataparser @ start
+    losses = PhotoLosses(reference, photos, objective, settings, effective_near_plane(meta, start_ns, settings.near_plane))
+    centre = torch.from_numpy(meta.centroid_under(start_ns))
+    everything = list(range(len(photos)))
+
+    def step() -> float:
+        began = time.perf_counter()
+        delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
+        values, _ = losses(Sim3.update(delta, centre) @ start_ns.to_torch(), everything)
+        torch.stack(values).mean().backward()
+        if args.device == "cuda":
+            torch.cuda.synchronize()
+        return time.perf_counter() - began
+
+    began = time.perf_counter()
+    losses.visible.for_pose(start_ns)
+    prepared = time.perf_counter() - began
+    step()  # warm-up: first calls of the compiled kernels
+    times = [step() for _ in range(args.steps)]
+    record = {
+        "gaussians": reference.count, "rendered": losses.visible.subset.count, "level_of_detail": args.level_of_detail,
+        "threads": threads, "load_s": loaded, "prepare_s": prepared, "step_s": statistics.median(times),
+        "photos": len(photos), "render_size": [photos[0].width, photos[0].height],
+    }
+    if args.register:
+        result = register(reference, meta, start, settings, photos=photos, objective=objective)
+        errors = pose_errors(meta.poses, result.transform, truth)
+        before = pose_errors(meta.poses, start, truth)
+        record.update(
+            register_s=result.wall_time_s, dR_before=before.rotation_deg, dT_before=before.translation,
+            dR=errors.rotation_deg, dT=errors.translation, verdict=result.verdict.verdict, culls=losses.visible.culls,
+        )
+    record["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    if args.device == "cuda":
+        record["peak_cuda_gb"] = torch.cuda.max_memory_allocated() / 2**30
+    return record
+
+
+def run_child(child: ChildArgs, wait: bool = True):
+    """Start `measure(child)` in a fresh Python process; its record (or the Popen when not `wait`)."""
+    command = [sys.executable, "-m", "sg_nerfstudio.bench.scaling", "child", "--load-config", str(child.load_config),
+               "--meta-image", str(child.meta_image), "--config", child.config, "--level-of-detail", str(child.level_of_detail),
+               "--steps", str(child.steps), "--device", child.device, "--seed", str(child.seed)]
+    command += ["--register"] if child.register else ["--no-register"]
+    command += ["--threads", str(child.threads)] if child.threads else []
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+    return read_record(process) if wait else process
+
+
+def read_record(process: subprocess.Popen) -> dict:
+    out, _ = process.communicate()
+    if process.returncode != 0:
+        raise RuntimeError(f"A measurement process failed (exit {process.returncode}); its error is printed above.")
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def growth(args: Args, work: Path, console: Console) -> list[dict]:
+    rows = []
+    for size in args.sizes:
+        console.print(f"[bold]{size:,} Gaussians[/bold]: writing the densified checkpoint")
+        config = densify_run(args.load_config, size, work / f"dense-{size}", args.seed)
+        for mode, level in MODES.items():
+            whole = args.register and (mode == "lod" or size <= args.register_today_below)
+            child = ChildArgs(config, args.meta_image, args.config, level, args.steps, whole, args.device, args.threads, args.seed)
+            record = {"size": size, "mode": mode, **run_child(child)}
+            console.print(record)
+            rows.append(record)
+        shutil.rmtree(work / f"dense-{size}")
+    return rows
+
+
+def growth_table(rows: list[dict], console: Console) -> None:
+    table = Table(title="Cost per step against the reference's size (ratios: to today's path at the same size / to the smallest size)")
+    for column in ("Gaussians", "path", "rendered", "load s", "prepare s", "step s", "vs today", "vs smallest", "peak GB", "register s", "ΔR° / ΔT", "verdict"):
+        table.add_column(column, justify="right")
+    today = {row["size"]: row["step_s"] for row in rows if row["mode"] == "today"}
+    smallest = {row["mode"]: row["step_s"] for row in rows if row["size"] == min(r["size"] for r in rows)}
+    for row in rows:
+        registered = "register_s" in row
+        table.add_row(
+            f"{row['gaussians']:,}", row["mode"], f"{row['rendered']:,}", f"{row['load_s']:.1f}", f"{row['prepare_s']:.2f}",
+            f"{row['step_s']:.3f}", f"{row['step_s'] / today[row['size']]:.2f}", f"{row['step_s'] / smallest[row['mode']]:.2f}",
+            f"{row['peak_rss_gb']:.1f}", f"{row['register_s']:.1f}" if registered else "-",
+            f"{row['dR']:.2f} / {row['dT']:.3f}" if registered else "-", row.get("verdict", "-"),
+        )
+    console.print(table)
+
+
+def concurrency(args: Args, console: Console) -> dict:
+    """The base model's registration alone, then two at once (each with the default threads)."""
+    child = ChildArgs(args.load_config, args.meta_image, args.config, MODES["lod"], 1, True, args.device, args.threads, args.seed)
+    solo = run_child(child)
+    pair = [run_child(child, wait=False) for _ in range(2)]
+    together = [read_record(process) for process in pair]
+    table = Table(title=f"Two registrations at once ({together[0]['threads']} threads each) vs one alone")
+    for column in ("run", "register s", "x solo"):
+        table.add_column(column, justify="right")
+    table.add_row("alone", f"{solo['register_s']:.1f}", "1.00")
+    for index, record in enumerate(together):
+        table.add_row(f"concurrent {index + 1}", f"{record['register_s']:.1f}", f"{record['register_s'] / solo['register_s']:.2f}")
+    console.print(table)
+    return {"solo": solo, "concurrent": together}
+
+
+def main(args: Args) -> None:
+    console = Console(width=160)
+    work = args.work_dir or Path(tempfile.mkdtemp(prefix="sg-scaling-"))
+    report: dict = {"args": {key: str(value) for key, value in vars(args).items()}, "cpu_count": os.cpu_count()}
+    try:
+        report["growth"] = growth(args, work, console)
+        growth_table(report["growth"], console)
+        if args.concurrency:
+            report["concurrency"] = concurrency(args, console)
+    finally:
+        if args.work_dir is None:
+            shutil.rmtree(work, ignore_errors=True)
+    args.output.write_text(json.dumps(report, indent=2, default=float))
+    console.print(f"Raw results: {args.output}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "child":
+        print(json.dumps(measure(tyro.cli(ChildArgs, args=sys.argv[2:])), default=float))
+    else:
+        main(tyro.cli(Args))

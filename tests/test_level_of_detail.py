@@ -1,0 +1,102 @@
+"""Level of detail of the frozen reference: moment matching, what merges, and that the render barely changes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from sg_nerfstudio.registration.level_of_detail import coarsen, footprint_cells, merge, plan_merge
+from sg_nerfstudio.registration.reference import ReferenceModel
+from sg_nerfstudio.render import rasterize
+from sg_nerfstudio.render.projection import cull_gaussians
+
+
+def model_of(means, covars, opacities, colors) -> ReferenceModel:
+    """A ReferenceModel holding just these Gaussians (RGB colours, 2 features each)."""
+    return ReferenceModel(
+        config_path=Path("none"), checkpoint_path=Path("none"), model=None, world_to_dataparser=None, teacher=None,
+        means=means, covars=covars, opacities=opacities, gaussian_features=colors[:, :2].clone(), feature_bias=torch.zeros(0),
+        colors=colors, sh_degree=0, background=torch.zeros(3),
+    )
+
+
+def textured_plane(count: int, seed: int) -> ReferenceModel:
+    """`count` tiny flat Gaussians about the plane z = 3 (x, y in [-1, 1], z within a few thousandths, as a
+    trained surface is) coloured by a smooth pattern."""
+    generator = torch.Generator().manual_seed(seed)
+    xy = torch.rand(count, 2, generator=generator) * 2 - 1
+    means = torch.cat([xy, 3.0 + 0.003 * torch.randn(count, 1, generator=generator)], dim=1)
+    covars = torch.diag_embed(torch.tensor([0.012, 0.012, 0.001]) ** 2).expand(count, 3, 3).clone()
+    colors = torch.stack([0.5 + 0.4 * torch.sin(3 * xy[:, 0]), 0.5 + 0.4 * torch.cos(2 * xy[:, 1]), 0.5 + 0.3 * xy[:, 0] * xy[:, 1]], dim=1)
+    return model_of(means, covars, torch.full((count,), 0.9), colors)
+
+
+def camera(width=64, height=48, focal=50.0):
+    K = torch.tensor([[[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]]])
+    return torch.eye(4)[None], K, width, height
+
+
+def render(model: ReferenceModel, viewmats, Ks, width, height):
+    rgb, alpha, _ = rasterize(model.means, None, None, model.opacities, model.colors, viewmats, Ks, width, height, covars=model.covars)
+    return rgb, alpha
+
+
+def cells_for(model: ReferenceModel, viewmats, Ks, width, height, pixels=1.0):
+    depths, seen = cull_gaussians(model.means, model.covars, viewmats, Ks, width, height)
+    return footprint_cells(depths, Ks[:, 0, 0], seen, pixels)
+
+
+def test_two_gaussians_merge_by_opacity_weighted_moments():
+    covars = torch.diag_embed(torch.tensor([[1.0, 4.0, 0.25], [4.0, 1.0, 1.0]], dtype=torch.float64) * 1e-4)
+    model = model_of(torch.tensor([[0.0, 0.0, 1.0], [0.02, 0.0, 1.0]], dtype=torch.float64), covars,
+                     torch.tensor([0.5, 0.8], dtype=torch.float64), torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64))
+    merged = merge(model, plan_merge(model.means, model.covars, torch.full((2,), 0.1, dtype=torch.float64)))
+    assert merged.count == 1
+    area = torch.tensor([2e-4, 2e-4], dtype=torch.float64)  # product of the two largest standard deviations
+    weights = model.opacities * area
+    mean = (weights[:, None] * model.means).sum(0) / weights.sum()
+    torch.testing.assert_close(merged.means[0], mean)
+    offsets = model.means - mean
+    covariance = (weights[:, None, None] * (covars + offsets[:, :, None] * offsets[:, None, :])).sum(0) / weights.sum()
+    torch.testing.assert_close(merged.covars[0], covariance)
+    torch.testing.assert_close(merged.colors[0], (weights[:, None] * model.colors).sum(0) / weights.sum())
+    largest = torch.linalg.eigvalsh(covariance)[1:].prod().sqrt()
+    torch.testing.assert_close(merged.opacities[0], (weights.sum() / largest).clamp(max=1.0))
+
+
+def test_gaussians_larger_than_their_cell_and_lone_ones_are_unchanged():
+    model = textured_plane(200, seed=1)
+    big = merge(model, plan_merge(model.means, model.covars, torch.full((200,), 0.01)))  # cells below every extent
+    assert big.count == 200 and torch.equal(big.means, model.means)
+    far_apart = model.means * torch.tensor([100.0, 100.0, 1.0])  # one Gaussian per cell
+    alone = plan_merge(far_apart, model.covars, torch.full((200,), 0.05))
+    assert alone.count == 200
+    kept = merge(model_of(far_apart, model.covars, model.opacities, model.colors), alone)
+    torch.testing.assert_close(kept.opacities.sort().values, model.opacities.sort().values)
+
+
+def test_coarsened_plane_renders_the_same_image_with_far_fewer_gaussians():
+    model = textured_plane(30_000, seed=0)
+    viewmats, Ks, width, height = camera()
+    coarse = coarsen(model, cells_for(model, viewmats, Ks, width, height))
+    assert coarse.count < model.count / 5
+    full_rgb, full_alpha = render(model, viewmats, Ks, width, height)
+    lod_rgb, lod_alpha = render(coarse, viewmats, Ks, width, height)
+    # Two random draws of the same plane differ by 0.004 / 0.001; clamping the merged opacity at 1 without growing
+    # the merged Gaussians (holes between them) gave 0.045 / 0.035.
+    assert (full_rgb - lod_rgb).abs().mean() < 0.02
+    assert (full_alpha - lod_alpha).abs().mean() < 0.025
+    # A camera four times closer resolves finer detail: cells shrink with depth, fewer Gaussians merge.
+    closer = torch.eye(4)[None].clone()
+    closer[0, 2, 3] = -2.25  # the plane at depth 0.75
+    nearer = coarsen(model, cells_for(model, closer, Ks, width, height))
+    assert nearer.count > coarse.count
+
+
+def test_cells_follow_the_nearest_camera_that_sees_the_gaussian():
+    depths = torch.tensor([[2.0, 4.0, 8.0], [4.0, 1.0, 8.0]])
+    seen = torch.tensor([[True, True, False], [True, False, False]])
+    cells = footprint_cells(depths, torch.tensor([100.0, 50.0]), seen, pixels=2.0)
+    torch.testing.assert_close(cells[:2], torch.tensor([0.04, 0.08]))
+    assert torch.isinf(cells[2])

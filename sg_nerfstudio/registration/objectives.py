@@ -201,15 +201,16 @@ class PhotoLosses:
         for size, positions in self.same_size_groups(indices, reference.count):
             start = time.perf_counter()
             photos = [self.photos[indices[position]] for position in positions]
-            viewmats = torch.stack([viewmat(meta_to_dataparser.move_camera(photo.cam_from_meta)) for photo in photos]).float()
+            device = reference.means.device  # the model's (CUDA: gsplat renders); targets and losses stay on the CPU
+            viewmats = torch.stack([viewmat(meta_to_dataparser.move_camera(photo.cam_from_meta)) for photo in photos]).float().to(device)
             rendered, alpha = self.objective.render(
-                reference, viewmats, torch.stack([photo.K for photo in photos]), size[0], size[1], self.near_plane, self.settings.backend,
+                reference, viewmats, torch.stack([photo.K for photo in photos]).to(device), size[0], size[1], self.near_plane, self.settings.backend,
             )
             middle = time.perf_counter()
             for position, photo, render, covered in zip(positions, photos, rendered.unbind(0), alpha.detach()):
-                on_grid = self.objective.to_target_grid(render[None], photo.target)
+                on_grid = self.objective.to_target_grid(render[None], photo.target).to(photo.target.device)
                 losses[position] = per_image_loss(on_grid, photo.target[None], self.settings.loss)[0]
-                coverage[position] = covered.mean()
+                coverage[position] = covered.mean().cpu()
             self.timings["render"] += middle - start
             self.timings["loss"] += time.perf_counter() - middle
         return losses, torch.stack(coverage)

@@ -69,7 +69,7 @@ class ReferenceModel:
             near_plane=near_plane, sh_degree=self.sh_degree if self.sh_degree > 0 else None, backend=backend,
             covars=self.covars,
         )
-        return (rgb + (1.0 - alpha) * self.background).clamp(0.0, 1.0), alpha
+        return (rgb + (1.0 - alpha) * self.background.to(rgb.device)).clamp(0.0, 1.0), alpha
 
     def render_features(
         self, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str = "auto",

@@ -80,12 +80,12 @@ class VisibleSubset:
     @torch.no_grad()
     def cull(self, pose: Sim3) -> None:
         means, covars = self.reference.means, self.reference.covars
-        depths = torch.empty(len(self.cameras), means.shape[0])
-        inside = torch.zeros(len(self.cameras), means.shape[0], dtype=torch.bool)
+        depths = torch.empty(len(self.cameras), means.shape[0], device=means.device)
+        inside = torch.zeros(len(self.cameras), means.shape[0], dtype=torch.bool, device=means.device)
         on_torch = pose.to_torch()
         for index, camera in enumerate(self.cameras):
-            view = viewmat(on_torch.move_camera(camera.cam_from_meta)).float()[None]
-            wide = camera.K.clone()[None]
+            view = viewmat(on_torch.move_camera(camera.cam_from_meta)).float()[None].to(means.device)
+            wide = camera.K.clone()[None].to(means.device)
             wide[:, 0, 0] /= WIDEN
             wide[:, 1, 1] /= WIDEN
             camera_depths, camera_inside = cull_gaussians(means, covars, view, wide, camera.width, camera.height, near_plane=CULL_NEAR)
@@ -96,7 +96,7 @@ class VisibleSubset:
         self.pose = pose
         self.subset = self.reference.subset(ids)
         if self.level_of_detail > 0 and ids.numel():
-            focal = torch.stack([camera.K[:2, :2].diagonal().max() for camera in self.cameras]).float()
+            focal = torch.stack([camera.K[:2, :2].diagonal().max() for camera in self.cameras]).float().to(means.device)
             cells = footprint_cells(depths[:, ids], focal, inside[:, ids], self.level_of_detail)
             self.subset = coarsen(self.subset, cells)
         self.culls += 1

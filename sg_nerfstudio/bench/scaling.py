@@ -47,8 +47,9 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-MODES = {"today": 0.0, "lod": 1.0}
-"""Benchmark paths by name: the `level_of_detail` each runs with."""
+MODES = {"today": (0.0, False), "lod": (1.0, True)}
+"""Benchmark paths by name: the `level_of_detail` each runs with and whether the compiled frozen-model kernels
+(`render.frozen_projection`) project and colour the model. `today` is the path before either existed."""
 
 
 @dataclass
@@ -64,9 +65,7 @@ class Args:
     steps: int = 5
     """Timed steps per size and path (the first, which builds the cull, is not among them)."""
     register: bool = True
-    """Also run a whole registration per size on the level-of-detail path."""
-    register_today_below: int = 150_000
-    """Run today's path as a whole registration too for sizes up to this many Gaussians (slow above)."""
+    """Also run whole registrations: both paths on the model as trained, the level-of-detail path per size."""
     concurrency: bool = True
     device: Literal["cpu", "cuda"] = "cpu"
     threads: Optional[int] = None
@@ -83,13 +82,14 @@ class ChildArgs:
 
     load_config: Path
     meta_image: Path
-    config: str
-    level_of_detail: float
-    steps: int
-    register: bool
-    device: str
-    threads: Optional[int]
-    seed: int
+    config: str = "fast-cpu"
+    level_of_detail: float = 1.0
+    frozen_kernels: bool = True
+    steps: int = 5
+    register: bool = False
+    device: str = "cpu"
+    threads: Optional[int] = None
+    seed: int = 0
 
 
 def densify_run(config_path: Path, gaussians: int, target: Path, seed: int) -> Path:
@@ -137,6 +137,9 @@ def measure(args: ChildArgs) -> dict:
     from sg_nerfstudio.registration.settings import load_preset
     from sg_nerfstudio.render.threads import set_threads
 
+    from sg_nerfstudio.render import rasterization
+
+    rasterization.FROZEN_KERNELS = args.frozen_kernels
     threads = set_threads(args.threads)
     settings = replace(load_preset(args.config), level_of_detail=args.level_of_detail, seed=args.seed)
     started = time.perf_counter()
@@ -168,6 +171,7 @@ def measure(args: ChildArgs) -> dict:
     times = [step() for _ in range(args.steps)]
     record = {
         "gaussians": reference.count, "rendered": losses.visible.subset.count, "level_of_detail": args.level_of_detail,
+        "frozen_kernels": args.frozen_kernels,
         "threads": threads, "load_s": loaded, "prepare_s": prepared, "step_s": statistics.median(times),
         "photos": len(photos), "render_size": [photos[0].width, photos[0].height],
     }
@@ -189,6 +193,7 @@ def run_child(child: ChildArgs, wait: bool = True):
     """Start `measure(child)` in a fresh Python process; its record (or the Popen when not `wait`)."""
     command = [sys.executable, "-m", "sg_nerfstudio.bench.scaling", "child", "--load-config", str(child.load_config),
                "--meta-image", str(child.meta_image), "--config", child.config, "--level-of-detail", str(child.level_of_detail),
+               "--frozen-kernels" if child.frozen_kernels else "--no-frozen-kernels",
                "--steps", str(child.steps), "--device", child.device, "--seed", str(child.seed)]
     command += ["--register"] if child.register else ["--no-register"]
     command += ["--threads", str(child.threads)] if child.threads else []
@@ -204,26 +209,29 @@ def read_record(process: subprocess.Popen) -> dict:
 
 
 def growth(args: Args, work: Path, console: Console) -> list[dict]:
+    """Both paths on the model as trained (size 0 in the records), then on each densified size."""
     rows = []
-    for size in args.sizes:
-        console.print(f"[bold]{size:,} Gaussians[/bold]: writing the densified checkpoint")
-        config = densify_run(args.load_config, size, work / f"dense-{size}", args.seed)
-        for mode, level in MODES.items():
-            whole = args.register and (mode == "lod" or size <= args.register_today_below)
-            child = ChildArgs(config, args.meta_image, args.config, level, args.steps, whole, args.device, args.threads, args.seed)
+    for size in (0, *args.sizes):
+        console.print(f"[bold]{f'{size:,} Gaussians' if size else 'the model as trained'}[/bold]")
+        config = densify_run(args.load_config, size, work / f"dense-{size}", args.seed) if size else args.load_config
+        for mode, (level, kernels) in MODES.items():
+            whole = args.register and (mode == "lod" or not size)  # today's path registers 1M Gaussians in hours
+            child = ChildArgs(config, args.meta_image, args.config, level, kernels, args.steps, whole, args.device, args.threads, args.seed)
             record = {"size": size, "mode": mode, **run_child(child)}
             console.print(record)
             rows.append(record)
-        shutil.rmtree(work / f"dense-{size}")
+        if size:
+            shutil.rmtree(work / f"dense-{size}")
     return rows
 
 
 def growth_table(rows: list[dict], console: Console) -> None:
-    table = Table(title="Cost per step against the reference's size (ratios: to today's path at the same size / to the smallest size)")
+    table = Table(title="Cost per step against the reference's size (ratios: to today's path at the same size / to the smallest densified size)")
     for column in ("Gaussians", "path", "rendered", "load s", "prepare s", "step s", "vs today", "vs smallest", "peak GB", "register s", "ΔR° / ΔT", "verdict"):
         table.add_column(column, justify="right")
     today = {row["size"]: row["step_s"] for row in rows if row["mode"] == "today"}
-    smallest = {row["mode"]: row["step_s"] for row in rows if row["size"] == min(r["size"] for r in rows)}
+    smallest_size = min(r["size"] for r in rows if r["size"]) if any(r["size"] for r in rows) else 0
+    smallest = {row["mode"]: row["step_s"] for row in rows if row["size"] == smallest_size}
     for row in rows:
         registered = "register_s" in row
         table.add_row(
@@ -237,7 +245,7 @@ def growth_table(rows: list[dict], console: Console) -> None:
 
 def concurrency(args: Args, console: Console) -> dict:
     """The base model's registration alone, then two at once (each with the default threads)."""
-    child = ChildArgs(args.load_config, args.meta_image, args.config, MODES["lod"], 1, True, args.device, args.threads, args.seed)
+    child = ChildArgs(args.load_config, args.meta_image, args.config, *MODES["lod"], 1, True, args.device, args.threads, args.seed)
     solo = run_child(child)
     pair = [run_child(child, wait=False) for _ in range(2)]
     together = [read_record(process) for process in pair]

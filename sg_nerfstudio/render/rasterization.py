@@ -35,6 +35,17 @@ RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 
 
+FROZEN_KERNELS = True
+"""Project and colour a frozen model (Gaussians that need no gradient: registration) with the compiled kernels
+of `frozen_projection` (gradients for the cameras only) instead of autograd; False restores the autograd path
+(same outputs and gradients, slower; `bench.scaling` compares the two)."""
+
+
+def frozen_kernels(*tensors: Tensor) -> bool:
+    """Whether the compiled frozen-model kernels apply: none of `tensors` needs a gradient and numba imports."""
+    return FROZEN_KERNELS and not any(tensor.requires_grad for tensor in tensors) and numba_available()
+
+
 def gsplat_available() -> bool:
     """True when gsplat imports and CUDA is usable (its rasterizer has no CPU kernels)."""
     if not torch.cuda.is_available():
@@ -241,7 +252,8 @@ class VisibleEntries:
 def _project_visible(means, covars, viewmats, Ks, antialiased: bool, projection_args: dict) -> tuple[Tensor, VisibleEntries]:
     """Depths [C, N] of all means, and the exact projection of what each camera sees.
 
-    A cheap conservative cull (means only) picks candidates; they are projected exactly in one packed batch
+    With Gaussians that need no gradient (a frozen model) and classic mode, the projection is the compiled
+    `frozen_projection.project_frozen_packed` (same outputs, gradients for the viewmats only). A cheap conservative cull (means only) picks candidates; they are projected exactly in one packed batch
     and those the exact test rejects (radii 0) are dropped, so the result equals culling with
     `project_gaussians` on all C x N pairs at a fraction of the cost."""
     depths, candidates = cull_gaussians(means, covars, viewmats, Ks, **projection_args)
@@ -249,10 +261,14 @@ def _project_visible(means, covars, viewmats, Ks, antialiased: bool, projection_
     gaussian_ids = torch.cat(candidate_ids) if candidate_ids else torch.zeros(0, dtype=torch.long)
     counts = torch.tensor([len(ids) for ids in candidate_ids], dtype=torch.long)
     camera_ids = torch.repeat_interleave(torch.arange(len(candidate_ids)), counts)
-    proj = project_gaussians_packed(
-        means.index_select(0, gaussian_ids), covars.index_select(0, gaussian_ids), viewmats, Ks, camera_ids,
-        calc_compensations=antialiased, **projection_args,
-    )
+    entry_means, entry_covars = means.index_select(0, gaussian_ids), covars.index_select(0, gaussian_ids)
+    if not antialiased and frozen_kernels(means, covars):
+        # a frozen model (registration): compiled projection, gradients for the cameras only
+        from sg_nerfstudio.render.frozen_projection import project_frozen_packed
+
+        proj = project_frozen_packed(entry_means, entry_covars, viewmats, Ks, camera_ids, **projection_args)
+    else:
+        proj = project_gaussians_packed(entry_means, entry_covars, viewmats, Ks, camera_ids, calc_compensations=antialiased, **projection_args)
     kept = torch.nonzero(proj.radii > 0).squeeze(1)  # keeps the order
     kept_fields = {field.name: getattr(proj, field.name) for field in fields(proj)}
     kept_fields = {name: None if value is None else value.index_select(0, kept) for name, value in kept_fields.items()}
@@ -263,11 +279,16 @@ def _entry_colors(
     colors: Tensor, sh_degree: Optional[int], means: Tensor, viewmats: Tensor, entry_ids: Tensor, entry_cameras: Tensor
 ) -> Tensor:
     """Colours [S, D] of packed (Gaussian `entry_ids`, camera `entry_cameras`) entries, SH evaluated
-    towards each entry's camera centre."""
+    towards each entry's camera centre (compiled for a frozen model: `frozen_projection.frozen_sh_colors`)."""
     if sh_degree is None:
         return colors.index_select(0, entry_ids)
     rotations, translations = viewmats[:, :3, :3], viewmats[:, :3, 3]
     camera_centres = -(rotations.transpose(1, 2) @ translations[:, :, None])[:, :, 0]  # [C, 3]
+    if frozen_kernels(means, colors):
+        # a frozen model (registration): compiled, gradients for the camera centres only
+        from sg_nerfstudio.render.frozen_projection import frozen_sh_colors
+
+        return frozen_sh_colors(means, colors, camera_centres, entry_ids, entry_cameras, sh_degree)
     dirs = means.index_select(0, entry_ids) - camera_centres.index_select(0, entry_cameras)
     return torch.clamp_min(evaluate_sh(sh_degree, dirs, colors.index_select(0, entry_ids)) + 0.5, 0.0)
 

@@ -9,9 +9,17 @@ from __future__ import annotations
 import importlib
 import importlib.abc
 import importlib.util
+import os
 import sys
 
 __version__ = "0.1.0"
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+"""Idle OpenMP threads sleep instead of spinning (unless the user chose otherwise). torch's and numba's pools
+are both OpenMP; spinning, two jobs on a 2-core machine collapsed (one registration 18.8 s alone, 185 s and 208 s
+side by side; passive: 22.6 s alone, 31 s each side by side). It takes effect when this package is imported before
+torch starts its OpenMP runtime: every sg-* command and `python -m sg_nerfstudio...`; `ns-train` imports torch
+first, so run concurrent trainings as `OMP_WAIT_POLICY=PASSIVE ns-train ...` (render/threads.py)."""
 
 MOVED_MODULES = {
     "sg_nerfstudio.method": "sg_nerfstudio.splat.method",

@@ -181,7 +181,7 @@ def measure(args: ChildArgs) -> dict:
         before = pose_errors(meta.poses, start, truth)
         record.update(
             register_s=result.wall_time_s, dR_before=before.rotation_deg, dT_before=before.translation,
-            dR=errors.rotation_deg, dT=errors.translation, verdict=result.verdict.verdict, culls=losses.visible.culls,
+            dR=errors.rotation_deg, dT=errors.translation, verdict=result.verdict.label,
         )
     record["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     if args.device == "cuda":

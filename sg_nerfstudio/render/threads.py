@@ -4,6 +4,10 @@ Both default to every core of the machine. On a 2-core machine two such processe
 the cores and spin against each other (a training step measured 0.38 s alone and 5 s beside one or two other
 jobs), so every command takes `--threads N` and sets both pools through `set_threads`: give concurrent jobs
 a share of the cores each (e.g. `--threads 1` for two jobs on two cores).
+
+Both pools are OpenMP, whose idle threads spin by default; importing `sg_nerfstudio` first sets
+`OMP_WAIT_POLICY=PASSIVE` (unless already set) so that they sleep instead, which is what keeps two jobs with the
+default threads from collapsing (measured in `bench/scaling.py`).
 """
 
 from __future__ import annotations

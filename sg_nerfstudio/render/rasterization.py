@@ -42,8 +42,9 @@ of `frozen_projection` (gradients for the cameras only) instead of autograd; Fal
 
 
 def frozen_kernels(*tensors: Tensor) -> bool:
-    """Whether the compiled frozen-model kernels apply: none of `tensors` needs a gradient and numba imports."""
-    return FROZEN_KERNELS and not any(tensor.requires_grad for tensor in tensors) and numba_available()
+    """Whether the compiled frozen-model kernels apply: none of `tensors` (CPU) needs a gradient and numba imports."""
+    frozen = not any(tensor.requires_grad or tensor.device.type != "cpu" for tensor in tensors)
+    return FROZEN_KERNELS and frozen and numba_available()
 
 
 def gsplat_available() -> bool:
@@ -252,10 +253,11 @@ class VisibleEntries:
 def _project_visible(means, covars, viewmats, Ks, antialiased: bool, projection_args: dict) -> tuple[Tensor, VisibleEntries]:
     """Depths [C, N] of all means, and the exact projection of what each camera sees.
 
-    With Gaussians that need no gradient (a frozen model) and classic mode, the projection is the compiled
-    `frozen_projection.project_frozen_packed` (same outputs, gradients for the viewmats only). A cheap conservative cull (means only) picks candidates; they are projected exactly in one packed batch
-    and those the exact test rejects (radii 0) are dropped, so the result equals culling with
-    `project_gaussians` on all C x N pairs at a fraction of the cost."""
+    A cheap conservative cull (means only) picks candidates; they are projected exactly in one packed batch
+    (for Gaussians that need no gradient, a frozen model, in classic mode: the compiled
+    `frozen_projection.project_frozen_packed`, gradients for the viewmats only), and those the exact test
+    rejects (radii 0) are dropped, so the result equals culling with `project_gaussians` on all C x N pairs at
+    a fraction of the cost."""
     depths, candidates = cull_gaussians(means, covars, viewmats, Ks, **projection_args)
     candidate_ids = [front_to_back(candidates[cam], depths[cam]) for cam in range(viewmats.shape[0])]
     gaussian_ids = torch.cat(candidate_ids) if candidate_ids else torch.zeros(0, dtype=torch.long)

@@ -5,7 +5,10 @@ Through autograd (`projection.project_gaussians_packed`) every (Gaussian, camera
 operations and their backward over [S, 3, 3] batches, about 1.5 us per entry on this project's 2-core CPU: a
 16-photo step of a 45k-Gaussian model spent half of its time there. This module computes the same outputs
 in one compiled pass per entry and, backwards, accumulates the 12 viewmat gradients per camera directly
-(one buffer per worker, summed afterwards), so projection costs a few tens of nanoseconds per entry.
+(one buffer per worker, summed afterwards), so projection costs a few tens of nanoseconds per entry. The same
+holds for view-dependent colour: `frozen_sh_colors` evaluates the SH colour of each entry towards its camera
+and returns gradients for the camera centres only (measured on that step: autograd SH 0.37 s forward and 0.37 s
+backward; compiled 0.10 s and 0.09 s; the whole step 2.0 s -> 1.5 s in that profile).
 
 Why by hand: gsplat's fused projection (which this follows term for term, classic mode) has CUDA kernels
 only, and nothing maintained projects Gaussians on the CPU. `tests/test_render.py` checks the outputs and the

@@ -166,6 +166,22 @@ def test_initialisers_recover_the_ground_truth_on_clean_renders(method, initiali
     assert initialiser(meta, method).transform == pytest.approx(result.transform, abs=1e-9)  # deterministic
 
 
+def test_keypoint_anchors_are_inliers_that_reproject_under_the_truth(initialiser, scene, tmp_path):
+    """`Initialiser.keypoints`: per registered photo its RANSAC inliers, which reproject under the ground truth
+    to within the RANSAC threshold (as the keypoint term measures them); photos with nothing to match have none."""
+    from sg_nerfstudio.registration.keypoints import KeypointTerm
+
+    meta = load_meta_image(scene / "meta" / "front")
+    anchors = initialiser.keypoints(meta)
+    assert len(anchors) >= 3 and all(len(a.points2D) >= 30 and a.points2D.shape[1] == 2 and a.points3D.shape[1] == 3 for a in anchors)
+    truth = ground_truth(scene / "meta" / "front")
+    grid = 32
+    term = KeypointTerm(meta, anchors, Sim3.identity(), grid_size=grid, weight=1.0)
+    cell_px = max(meta.photos[0].camera.width, meta.photos[0].camera.height) / grid
+    assert term.median_error_cells(truth) * cell_px < 2.0  # pixels
+    assert initialiser.keypoints(load_meta_image(blank_meta_image(scene, tmp_path))) == []
+
+
 def test_features_and_reference_triangulation_come_from_the_cache(scene, cache_dir, initialiser):
     meta = load_meta_image(scene / "meta" / "front")
     initialiser(meta, "colmap")  # fills the cache if the order of tests did not

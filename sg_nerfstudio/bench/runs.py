@@ -35,6 +35,7 @@ from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
+from sg_nerfstudio.registration.keypoints import PhotoKeypoints
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
@@ -173,7 +174,7 @@ class SceneRunner:
             base = self.options.alternatives[spec.mode] if spec.mode else self.options.settings
             settings = replace(base, seed=seed, **spec.overrides)
             try:
-                result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step))
+                result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step), keypoints=self.keypoints(subject, settings))
             except (InputError, FloatingPointError) as error:
                 record["refine_failure"] = str(error)
             else:
@@ -183,6 +184,17 @@ class SceneRunner:
                 record["verdict_evidence"] = result.verdict.as_record()["evidence"]
         write_json_atomically(record_path(self.output, self.scene.name, meta.name, spec.name), record)
         return record
+
+    def keypoints(self, subject: MetaImage, settings: RegistrationSettings) -> list[PhotoKeypoints]:
+        """The keypoint anchors of a run whose settings weigh them: the same for every start of a meta-image
+        (the correspondences do not depend on it); none when the reference's SIFT cloud cannot be built."""
+        if settings.keypoint_weight <= 0 or self.reference_unusable is not None:
+            return []
+        try:
+            return self.initialiser.keypoints(subject)
+        except InputError as error:
+            self.reference_unusable = str(error)
+            return []
 
     def start(self, meta: BenchmarkMeta, subject: MetaImage, spec: RunSpec, rng: np.random.Generator) -> tuple[Optional[Sim3], Optional[str]]:
         """The initial transform of a run, or (None, the initialiser's failure sentence)."""

@@ -112,6 +112,18 @@ class MetaImage:
         """[3] centroid of the camera centres moved by `transform`."""
         return transform.apply(self.centres.mean(0))
 
+    def look_at_under(self, transform: Sim3) -> Array:
+        """[3] where the photos look, moved by `transform`: the mean over photos of the point on each optical
+        axis at the median depth of the sparse points it observes (the camera centroid when no photo observes
+        any). Rotating about it keeps the photographed scene where it is in every photo to first order, so
+        rotation and translation change the images independently."""
+        targets = []
+        for photo in self.photos:
+            depths = photo.point_depths[photo.point_depths > 0]
+            if len(depths):
+                targets.append(photo.centre + float(np.median(depths)) * photo.cam_from_world[2, :3])
+        return transform.apply(np.mean(targets, axis=0)) if targets else self.centroid_under(transform)
+
 
 def _focal_and_centre(camera: pycolmap.Camera) -> tuple[float, float, float, float]:
     return (

@@ -58,6 +58,8 @@ class PhotoPose:
     """[3, 4], None when the photo could not be registered."""
     num_inliers: int
     num_correspondences: int
+    inlier_mask: Optional[Array] = None
+    """[M] bool over the photo's correspondences, set when it registered."""
 
     @property
     def registered(self) -> bool:
@@ -89,7 +91,7 @@ def register_photo(observations: Observations, settings: AbsolutePoseSettings) -
     inliers = int(result["num_inliers"])
     if inliers < settings.min_inliers or inliers < settings.min_inlier_ratio * count:
         return PhotoPose(observations.name, None, inliers, count)
-    return PhotoPose(observations.name, result["cam_from_world"].matrix(), inliers, count)
+    return PhotoPose(observations.name, result["cam_from_world"].matrix(), inliers, count, np.asarray(result["inlier_mask"], dtype=bool))
 
 
 def centre_of(cam_from_world: Array) -> Array:

@@ -50,6 +50,7 @@ from sg_nerfstudio.initialisers.reference_cloud import (
 )
 from sg_nerfstudio.initialisers.retrieval import VisualWordIndex
 from sg_nerfstudio.geometry.meta_image import MetaImage
+from sg_nerfstudio.registration.keypoints import PhotoKeypoints
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.splat.trained import read_trainer_config
 
@@ -180,6 +181,7 @@ class Initialiser:
         self.matcher = VerifiedMatcher(settings.matching)
         self._cloud: Optional[ReferenceCloud] = None
         self._index: Optional[VisualWordIndex] = None
+        self._observations: dict[tuple, list[Observations]] = {}
 
     @property
     def cloud(self) -> ReferenceCloud:
@@ -206,8 +208,26 @@ class Initialiser:
         result.wall_time_s = time.perf_counter() - start
         return result
 
+    def keypoints(self, meta: MetaImage) -> list[PhotoKeypoints]:
+        """Per photo that registers to the reference on its own (`register_photo`), its RANSAC-inlier 2D-3D
+        correspondences: the anchors of `RegistrationSettings.keypoint_weight` (registration/keypoints.py).
+        Photos that do not register are left out. Raises InputError when the reference cannot be used."""
+        anchors = []
+        for photo_observations in self.observations(meta):
+            pose = register_photo(photo_observations, self.settings.absolute_pose)
+            if pose.registered:
+                mask = pose.inlier_mask
+                anchors.append(PhotoKeypoints(photo_observations.name, photo_observations.points2D[mask], photo_observations.points3D[mask]))
+        return anchors
+
     def observations(self, meta: MetaImage) -> list[Observations]:
-        """Per photo, its 2D-3D correspondences with the reference's SIFT points."""
+        """Per photo, its 2D-3D correspondences with the reference's SIFT points (computed once per set of photos)."""
+        key = tuple(str(photo.path) for photo in meta.photos)
+        if key not in self._observations:
+            self._observations[key] = self._match(meta)
+        return self._observations[key]
+
+    def _match(self, meta: MetaImage) -> list[Observations]:
         cloud = self.cloud
         advance = self.progress(f"SIFT on photos of {meta.name}", len(meta.photos))
         features = []

@@ -21,6 +21,7 @@ from torch import Tensor
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
+from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm, PhotoKeypoints
 from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule
@@ -120,12 +121,15 @@ def evaluate_start(losses: PhotoLosses, initial_ns: Sim3, meta_name: str) -> tup
 
 def robust_step(
     losses: PhotoLosses, aggregator: RobustAggregator, transform: Sim3, batch: list[int],
-    optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LRScheduler,
+    optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LRScheduler, anchors: Optional[KeypointTerm] = None,
 ) -> tuple[list[Tensor], Array, Array]:
-    """One Adam step on the robust objective of `batch` under `transform`; returns (losses, kept, weights)."""
+    """One Adam step on the robust objective of `batch` under `transform` (plus the keypoint term when there are
+    `anchors`); returns (losses, kept, weights)."""
     values, _ = losses(transform, batch)
     objective, kept, weights = aggregator(values, np.asarray(batch))
     start = time.perf_counter()
+    if anchors:
+        objective = objective + anchors(transform)
     optimizer.zero_grad()
     objective.backward()
     optimizer.step()
@@ -151,6 +155,7 @@ def register(
     photos: Optional[list[PreparedPhoto]] = None,
     on_step: Optional[Callable[[int, Sim3], None]] = None,
     objective: Optional[Objective] = None,
+    keypoints: Optional[list[PhotoKeypoints]] = None,
 ) -> RegistrationResult:
     """Estimate the Sim(3) meta -> reference world starting from `initial_world`.
 
@@ -158,7 +163,9 @@ def register(
     coarsest), then the main stage at the settings' teacher size. `photos` and `objective` may come prepared
     for the main stage (`prepare_photos`, `build_objective`: the teacher is built once). `on_step(step,
     transform)` is called after every step of every stage (`total_steps(settings)` in all) with the current
-    estimate (meta -> world).
+    estimate (meta -> world). `keypoints`: the photos' verified SIFT correspondences with the reference
+    (`Initialiser.keypoints`); with `settings.keypoint_weight > 0` every stage adds their reprojection term
+    (registration/keypoints.py).
     """
     started = time.perf_counter()
     objective = objective or build_objective(reference, settings)
@@ -173,17 +180,21 @@ def register(
     history = History([p.name for p in photos])
     report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
     stages = coarse_stages(reference, meta, settings, near_plane) + [main]
+    anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
     current, step, hypotheses = initial_ns, 0, []
     for index, stage in enumerate(stages):
         if index == 0 and settings.hypotheses > 0:
-            current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, report)
+            current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, report, anchor)
         else:
             seed = initial_losses if stage is main and index == 0 else None  # the start's losses are known already
-            current, step = optimise_stage(stage, meta, current, settings, history, step, report, seed)
+            current, step = optimise_stage(stage, meta, current, settings, history, step, report, seed, anchor)
 
     final_losses, final_coverage, trimmed = final_evaluation(main.losses, current, settings)
     probing = time.perf_counter()
     evidence = gather_evidence(main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings))
+    final_anchors = anchor.term(main.losses.objective.teacher.grid_size, 1.0)
+    if final_anchors is not None:
+        evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
@@ -252,16 +263,19 @@ def coarse_stages(reference: ReferenceModel, meta: MetaImage, settings: Registra
 
 def optimise_stage(
     stage: Stage, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
-    on_step: Optional[Callable[[int, Sim3], None]], start_losses: Optional[Array] = None,
+    on_step: Optional[Callable[[int, Sim3], None]], start_losses: Optional[Array] = None, anchor: Optional[Anchoring] = None,
 ) -> tuple[Sim3, int]:
     """Adam on delta for `stage.steps` steps from `start_ns` (meta -> dataparser), recorded in `history` from
     step `first_step` on; (the estimate at the end, the next step number). `start_losses`: [P] the stage's
-    per-photo losses at `start_ns` if known (they seed the robust loss), else computed."""
+    per-photo losses at `start_ns` if known (they seed the robust loss), else computed. `anchor` adds the
+    keypoint term, weighted by the stage's objective at its start."""
     losses = stage.losses
     seed = start_losses if start_losses is not None else objective_at(losses, start_ns)
-    aggregator = RobustAggregator(TrimmingRule.of(settings), seed)
+    rule = TrimmingRule.of(settings)
+    aggregator = RobustAggregator(rule, seed)
+    anchors = anchor.term(losses.objective.teacher.grid_size, rule.trimmed_mean(seed)) if anchor is not None else None
     start = start_ns.to_torch()
-    centre = torch.from_numpy(meta.centroid_under(start_ns))
+    centre = torch.from_numpy(update_centre(meta, start_ns, settings))
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
     optimizer = torch.optim.Adam([delta], lr=stage.lr, eps=settings.adam_eps)
     gamma = (stage.lr_final / stage.lr) ** (1.0 / max(stage.steps, 1)) if stage.lr_final else 1.0
@@ -269,13 +283,18 @@ def optimise_stage(
     batches = BatchSchedule(len(losses.photos), settings.images_per_step, settings.seed)
     for step in range(first_step, first_step + stage.steps):
         batch = batches.next()
-        values, kept, weights = robust_step(losses, aggregator, Sim3.update(delta, centre) @ start, batch, optimizer, scheduler)
+        values, kept, weights = robust_step(losses, aggregator, Sim3.update(delta, centre) @ start, batch, optimizer, scheduler, anchors)
         if not torch.isfinite(delta).all():
             raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step} ({stage.name}).")
         history.record(step, batch, values, kept, weights, stage.name)
         if on_step is not None:
             on_step(step, current_estimate(delta, centre, start))
     return current_estimate(delta, centre, start), first_step + stage.steps
+
+
+def update_centre(meta: MetaImage, transform: Sim3, settings: RegistrationSettings) -> Array:
+    """[3] the point (dataparser frame) the update rotates and scales about (`settings.update_centre`)."""
+    return meta.look_at_under(transform) if settings.update_centre == "look-at" else meta.centroid_under(transform)
 
 
 def objective_at(losses: PhotoLosses, meta_to_dataparser: Sim3) -> Array:
@@ -286,23 +305,25 @@ def objective_at(losses: PhotoLosses, meta_to_dataparser: Sim3) -> Array:
 
 def best_hypothesis(
     stage: Stage, judge: PhotoLosses, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
-    on_step: Optional[Callable[[int, Sim3], None]],
+    on_step: Optional[Callable[[int, Sim3], None]], anchor: Optional[Anchoring] = None,
 ) -> tuple[Sim3, list[dict], int]:
     """Several starts around `start_ns`: the start and `settings.hypotheses` rotations of `hypothesis_deg` about
     axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales`
     factor. The `hypotheses_kept` with the lowest robust objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
     stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
 
+    Scores are the robust objective plus, with an `anchor`, the keypoint term weighted as in `optimise_stage`.
+
     Returns (winner, one record per optimised hypothesis, the next step number)."""
     rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
     candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypothesis_scales) for axis, transform in rotated]
-    score = lambda losses, transform: TrimmingRule.of(settings).trimmed_mean(objective_at(losses, transform))
-    scores = [score(stage.losses, transform) for _, transform in candidates]
+    coarse_score, judge_score = (objective_with_anchors(losses, start_ns, settings, anchor) for losses in (stage.losses, judge))
+    scores = [coarse_score(transform) for _, transform in candidates]
     runs = []
     for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses_kept)]:
         own = History(history.names)
-        final, _ = optimise_stage(stage, meta, candidates[index][1], settings, own, first_step, on_step)
-        runs.append((final, score(judge, final), own, candidates[index][0], scores[index]))
+        final, _ = optimise_stage(stage, meta, candidates[index][1], settings, own, first_step, on_step, anchor=anchor)
+        runs.append((final, judge_score(final), own, candidates[index][0], scores[index]))
     winner, _, winner_history, _, _ = min(runs, key=lambda run: run[1])
     history.extend(winner_history)
     records = [
@@ -311,6 +332,17 @@ def best_hypothesis(
         for final, final_score, _, (axis, factor), start_score in runs
     ]
     return winner, records, first_step + stage.steps
+
+
+def objective_with_anchors(losses: PhotoLosses, start_ns: Sim3, settings: RegistrationSettings, anchor: Optional[Anchoring]) -> Callable[[Sim3], float]:
+    """numpy Sim3 (meta -> dataparser) -> the trimmed mean of `losses` plus the keypoint term (weighted by the
+    trimmed mean at `start_ns`, as a stage starting there would weigh it)."""
+    rule = TrimmingRule.of(settings)
+    dense = lambda transform: rule.trimmed_mean(objective_at(losses, transform))
+    if not anchor:
+        return dense
+    term = anchor.term(losses.objective.teacher.grid_size, dense(start_ns))
+    return lambda transform: dense(transform) + anchor.cost(term, transform)
 
 
 HYPOTHESIS_AGREEMENT_DEG = 2.0

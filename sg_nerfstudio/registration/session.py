@@ -32,6 +32,7 @@ from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
+from sg_nerfstudio.registration.keypoints import PhotoKeypoints
 from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.objectives import build_objective, prepare_photos
@@ -166,10 +167,10 @@ def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     reference_part = read_reference_part(job) if job.merge_reference and len(metas) > 1 else None
     initialiser = None
     if any(value in METHODS for value in init_values):
-        set_colmap_verbosity(job.verbose)
-        source = resolve_reference_source(job.load_config, job.reference_colmap, job.reference_images)
-        initialiser = Initialiser(source, InitialiserSettings(alignment_max_error=job.init_max_error, cache_dir=job.init_cache_dir))
+        initialiser = build_initialiser(job)
         initialiser.check_reference()
+    elif job.settings.keypoint_weight > 0:
+        initialiser = keypoint_initialiser(job, console)
 
     reference = load_reference(job.load_config, device=resolve_device(job.device))
     outcomes = []
@@ -179,21 +180,60 @@ def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
             if initial is None:
                 outcomes.append(MetaOutcome(meta))
                 continue
-        outcomes.append(register_one(job, reference, meta, initial, gt, console))
+        keypoints = anchors_for(initialiser, meta, job.settings, console)
+        outcomes.append(register_one(job, reference, meta, initial, gt, console, keypoints))
     print_summary(outcomes, console)
     if len(metas) > 1:
         write_merge(job.output_dir / MERGED, outcomes, reference_part, job.overwrite, console)
     return outcomes
 
 
-def register_one(job: RegistrationJob, reference, meta: MetaImage, initial: Sim3, gt: Optional[Sim3], console: Console) -> MetaOutcome:
+def build_initialiser(job: RegistrationJob) -> Initialiser:
+    """The SIFT + pycolmap initialiser of the job's reference (InputError when its source cannot be found)."""
+    set_colmap_verbosity(job.verbose)
+    source = resolve_reference_source(job.load_config, job.reference_colmap, job.reference_images)
+    return Initialiser(source, InitialiserSettings(alignment_max_error=job.init_max_error, cache_dir=job.init_cache_dir))
+
+
+def keypoint_initialiser(job: RegistrationJob, console: Console) -> Optional[Initialiser]:
+    """For keypoint anchors without an initialiser start: the initialiser when the reference's COLMAP model and
+    images can be used, else None after one line saying that the dense objective runs alone."""
+    try:
+        initialiser = build_initialiser(job)
+        initialiser.check_reference()
+        return initialiser
+    except InputError as error:
+        console.print(f"[yellow]Keypoint anchors are off (the dense objective alone): {error}[/yellow]", soft_wrap=True)
+        return None
+
+
+def anchors_for(initialiser: Optional[Initialiser], meta: MetaImage, settings: RegistrationSettings, console: Console) -> list[PhotoKeypoints]:
+    """The meta-image's keypoint anchors when the settings weigh them (empty otherwise or when the reference's
+    SIFT cloud cannot be built, which is said in one line)."""
+    if initialiser is None or settings.keypoint_weight <= 0:
+        return []
+    try:
+        with rich_progress(console) as progress:
+            initialiser.progress = progress
+            keypoints = initialiser.keypoints(meta)
+    except InputError as error:
+        console.print(f"[yellow]{meta.name}: keypoint anchors are off (the dense objective alone): {error}[/yellow]", soft_wrap=True)
+        return []
+    count = sum(len(k.points2D) for k in keypoints)
+    console.print(f"{meta.name}: keypoint anchors from {len(keypoints)} of {len(meta.photos)} photos ({count} correspondences).")
+    return keypoints
+
+
+def register_one(
+    job: RegistrationJob, reference, meta: MetaImage, initial: Sim3, gt: Optional[Sim3], console: Console, keypoints: Optional[list[PhotoKeypoints]] = None,
+) -> MetaOutcome:
     """Register one meta-image with a progress bar and write its result directory."""
     objective = build_objective(reference, job.settings)
     photos = prepare_photos(reference, meta, job.settings, objective)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console, transient=True) as progress:
         task = progress.add_task(f"Registering {meta.name}", total=total_steps(job.settings))
-        result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective)
+        result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective, keypoints=keypoints)
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}

@@ -83,6 +83,16 @@ class RegistrationSettings:
     """Merge the reference's Gaussians that are far below a render pixel, per voxel of this many render pixels
     at the nearest photo that sees them (registration/level_of_detail.py: the cost of a step follows the
     pixels, not the model's size); 0 renders every Gaussian as trained."""
+    update_centre: Literal["cameras", "look-at"] = "cameras"
+    """Point the update delta rotates and scales about: the centroid of the meta-image's cameras (DESIGN.md, the
+    paper) or the point the photos look at (`MetaImage.look_at_under`). About the cameras, a rotation moves the
+    scene across every photo just as a translation does (a long valley in delta that Adam crosses slowly);
+    about the look-at point the two act on the images independently."""
+    keypoint_weight: float = 0.0
+    """Weight of the keypoint anchors (registration/keypoints.py): the initialiser's verified SIFT correspondences
+    of the photos with the reference as a reprojection term, relative to the dense objective at each stage's
+    start; 0 = the dense objective alone (the paper). Needs the reference's COLMAP model and images (found
+    through the trained config, or --reference-colmap / --reference-images)."""
     seed: int = 0
     backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
 

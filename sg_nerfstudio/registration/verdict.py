@@ -15,6 +15,9 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   at least `PHOTO_RISE`) and that the model covers (at least `PHOTO_COVERAGE` of the render). Occluded or
   wrong photos do not agree; a wrong result has few photos that agree.
 - `objective_drop`: 1 - T_final / T_initial (reported, not used: a good start has little to gain).
+- `keypoint_error_cells`, `keypoint_photos` (with keypoint anchors only, registration/keypoints.py): the median
+  reprojection error of the anchors at the result, in teacher cells, and how many photos have anchors; reported,
+  not used.
 - `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
   for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
 
@@ -66,6 +69,8 @@ class Evidence:
     per_photo_rise: list[float] = field(default_factory=list)
     per_photo_coverage: list[float] = field(default_factory=list)
     hypothesis_margin: Optional[float] = None
+    keypoint_error_cells: Optional[float] = None
+    keypoint_photos: Optional[int] = None
 
     @property
     def agreeing_fraction(self) -> float:

@@ -504,7 +504,7 @@ def projected_keypoints(reference, meta, truth: Sim3, count: int, outlier_fracti
     """Keypoint anchors made from the truth: reference points (Gaussian centres, world frame) seen by each photo,
     projected through the photo's real pycolmap camera (its distortion included) under `truth`; a fraction of
     each photo's keypoints moved to random pixels (the mismatches RANSAC lets through)."""
-    from sg_nerfstudio.registration.keypoints import PhotoKeypoints
+    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 
     rng = np.random.default_rng(seed)
     world = reference.world_to_dataparser.inverse().apply(reference.means.detach().double().cpu().numpy())

@@ -35,7 +35,7 @@ from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
-from sg_nerfstudio.registration.keypoints import PhotoKeypoints
+from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import ReferenceModel, load_reference

@@ -52,6 +52,21 @@ class Observations:
 
 
 @dataclass
+class PhotoKeypoints:
+    """Verified 2D-3D correspondences of one photo of a meta-image with the reference.
+
+    Attributes:
+        name: the photo's image name (as in the meta-image's COLMAP model).
+        points2D: [M, 2] pixels in the original photo (COLMAP convention: top-left pixel centre at 0.5).
+        points3D: [M, 3] reference world points.
+    """
+
+    name: str
+    points2D: np.ndarray
+    points3D: np.ndarray
+
+
+@dataclass
 class PhotoPose:
     name: str
     cam_from_reference: Optional[Array]

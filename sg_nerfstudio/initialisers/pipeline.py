@@ -31,6 +31,7 @@ from sg_nerfstudio.initialisers.estimate import (
     AbsolutePoseSettings,
     GeneralizedSettings,
     Observations,
+    PhotoKeypoints,
     PhotoPose,
     centre_of,
     centres_degenerate,
@@ -50,7 +51,6 @@ from sg_nerfstudio.initialisers.reference_cloud import (
 )
 from sg_nerfstudio.initialisers.retrieval import VisualWordIndex
 from sg_nerfstudio.geometry.meta_image import MetaImage
-from sg_nerfstudio.registration.keypoints import PhotoKeypoints
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.splat.trained import read_trainer_config
 

@@ -27,7 +27,6 @@ reference's COLMAP model) and go to the dataparser frame with the reference's `w
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -36,27 +35,13 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 
 KERNEL_CELLS = 0.5
 """Scale c of the Cauchy kernel in teacher cells (16 px of a 1024-px photo at a 32-cell grid): about the
 initialiser's RANSAC threshold (12 px of a 640-px photo), so that its inliers sit in the quadratic part."""
 MIN_DEPTH = 1e-6
 """Points at or behind a camera (under the current transform) carry no keypoint term for that step."""
-
-
-@dataclass
-class PhotoKeypoints:
-    """Verified 2D-3D correspondences of one photo of a meta-image with the reference.
-
-    Attributes:
-        name: the photo's image name (as in the meta-image's COLMAP model).
-        points2D: [M, 2] pixels in the original photo (COLMAP convention: top-left pixel centre at 0.5).
-        points3D: [M, 3] reference world points.
-    """
-
-    name: str
-    points2D: np.ndarray
-    points3D: np.ndarray
 
 
 class KeypointTerm:

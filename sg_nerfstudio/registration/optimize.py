@@ -21,7 +21,8 @@ from torch import Tensor
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
-from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm, PhotoKeypoints
+from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
 from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule

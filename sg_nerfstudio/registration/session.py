@@ -32,7 +32,7 @@ from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
-from sg_nerfstudio.registration.keypoints import PhotoKeypoints
+from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.objectives import build_objective, prepare_photos

@@ -183,11 +183,13 @@ def register(
     stages = coarse_stages(reference, meta, settings, near_plane) + [main]
     anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
     current, step, hypotheses = initial_ns, 0, []
+    if anchor and settings.keypoint_prealign_steps > 0:
+        current = anchor.prealign(current, update_centre(meta, current, settings), main.losses.objective.teacher.grid_size, settings.keypoint_prealign_steps)
     for index, stage in enumerate(stages):
         if index == 0 and settings.hypotheses > 0:
             current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, report, anchor)
         else:
-            seed = initial_losses if stage is main and index == 0 else None  # the start's losses are known already
+            seed = initial_losses if stage is main and index == 0 and current is initial_ns else None  # the start's losses, if still the start
             current, step = optimise_stage(stage, meta, current, settings, history, step, report, seed, anchor)
 
     final_losses, final_coverage, trimmed = final_evaluation(main.losses, current, settings)

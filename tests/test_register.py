@@ -222,7 +222,9 @@ def test_outlier_lts_ignores_a_wrong_photo_and_keeps_the_others(reference, meta,
     settings = RegistrationSettings(**{**FAST, "steps": 10, "robust": "outlier-lts"})
     photos = prepare_photos(reference, meta, settings)
     wrong = copy.copy(photos[1])
-    wrong.target = photos[1].target.flip(0).flip(1)  # the photo seen upside down: no pose explains it
+    # A map no pose explains: the photo's descriptor inverted. (The photo upside down was used before; on the
+    # tiny scene's 16-cell grid its loss came within 3 robust scales of the others with some trainings.)
+    wrong.target = photos[1].target.max() - photos[1].target
     photos[1] = wrong
     result = register(reference, meta, ground_truth, settings, photos=photos)
     assert result.ignored_fraction[1] == pytest.approx(1.0)

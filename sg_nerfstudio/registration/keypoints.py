@@ -50,7 +50,10 @@ class KeypointTerm:
 
     Tensors: `rays` [M, 2] normalised image coordinates (x/z, y/z) of the keypoints, `points` [M, 3] the
     matched points in the dataparser frame, `photo` [M] the index of the photo each belongs to, `cells` [M, 2]
-    teacher cells per unit of normalised coordinate (fx, fy of the photo over its cell size in pixels)."""
+    teacher cells per unit of normalised coordinate (fx, fy of the photo over its cell size in pixels),
+    `point_rotations` [M, 3, 3] / `point_translations` [M, 3] the cam_from_meta of each keypoint's photo. A
+    transform moves the points back into the meta frame (its inverse) rather than the cameras forward: one
+    batched operation for all photos."""
 
     def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, grid_size: int, weight: float):
         by_name = {k.name: k for k in keypoints if len(k.points2D)}
@@ -76,7 +79,8 @@ class KeypointTerm:
         self.points = torch.from_numpy(np.concatenate(points))
         self.photo = torch.from_numpy(np.concatenate(photo))
         self.cells = torch.from_numpy(np.concatenate(cells))
-        self.cameras = torch.stack(self.cam_from_meta)  # [P', 3, 4]
+        cameras = torch.stack(self.cam_from_meta)[self.photo]  # [M, 3, 4] cam_from_meta of each keypoint's photo
+        self.point_rotations, self.point_translations = cameras[:, :, :3], cameras[:, :, 3]
         self.counts = torch.bincount(self.photo, minlength=self.photos).double()
 
     def __bool__(self) -> bool:
@@ -84,8 +88,9 @@ class KeypointTerm:
 
     def residuals(self, meta_to_dataparser: Sim3) -> tuple[Tensor, Tensor]:
         """[M] reprojection errors in teacher cells and [M] bool in front of the camera, under a torch Sim3."""
-        moved = torch.stack([meta_to_dataparser.move_camera(camera) for camera in self.cameras])  # [P', 3, 4] cam_from_dataparser
-        in_camera = torch.einsum("mij,mj->mi", moved[self.photo, :, :3], self.points) + moved[self.photo, :, 3]
+        linear, translation, scale = meta_to_dataparser.linear, meta_to_dataparser.translation, meta_to_dataparser.scale
+        in_meta = (self.points - translation) @ linear / scale**2  # the inverse similarity: L^-1 = L^T / s^2
+        in_camera = torch.einsum("mij,mj->mi", self.point_rotations, in_meta) + self.point_translations
         depth = in_camera[:, 2]
         in_front = depth > MIN_DEPTH
         projected = in_camera[:, :2] / torch.where(in_front, depth, torch.ones_like(depth))[:, None]

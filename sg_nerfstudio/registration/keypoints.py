@@ -129,8 +129,8 @@ class Anchoring:
 
     def prealign(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> Sim3:
         """The keypoint term alone minimised from `start` (numpy Sim3, meta -> dataparser): Adam on delta about
-        `centre` [3] for `steps` steps, learning rate 0.02 decaying to 0.0005. No render is involved (about a
-        millisecond a step), so a start far from the answer reaches the keypoints' own optimum before the dense
+        `centre` [3] for `steps` steps, learning rate 0.02 decaying to 0.0005. No render is involved (a few
+        milliseconds a step), so a start far from the answer reaches the keypoints' own optimum before the dense
         objective, whose basin is a few cells wide, takes over. Returns `start` without keypoints."""
         term = self.term(grid_size, 1.0)
         if not term or steps <= 0:

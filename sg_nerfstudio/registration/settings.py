@@ -94,7 +94,7 @@ class RegistrationSettings:
     start; 0 = the dense objective alone (the paper). Needs the reference's COLMAP model and images (found
     through the trained config, or --reference-colmap / --reference-images)."""
     keypoint_prealign_steps: int = 0
-    """With keypoint anchors: steps of the keypoint term alone (no render, about a millisecond each) that move the
+    """With keypoint anchors: steps of the keypoint term alone (no render, a few milliseconds each) that move the
     start to the keypoints' own optimum before the first stage; 0 = off."""
     seed: int = 0
     backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"

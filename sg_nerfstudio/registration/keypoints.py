@@ -5,8 +5,9 @@ the long side for the CPU presets). On real photographs its minimum is not exact
 reference renders blur and distort what six training photos did not see, and the descriptor pools 8-pixel
 cells of a 256-pixel image. A SIFT start is the opposite: its keypoints are located to a pixel of the full
 photo against points triangulated from the reference's *photos*, but it fits each photo on its own and needs
-texture. Measured on the real-photo scenes (README "Keypoint anchors"), refinement alone ended 0.1-0.2° worse
-than a colmap start within 1° and stopped at 0.8-1.3° from 5° starts.
+texture. Measured on the real-photo scenes (README "Real-photo benchmark scenes"), refinement alone ended 0.1-0.2°
+worse than a colmap start within 1° and stopped at 0.8-1.3° from 5° starts; README "Keypoint anchors, measured"
+has what the anchors changed.
 
 With `keypoint_weight > 0` the objective of every stage becomes
 
@@ -16,7 +17,8 @@ where r is the reprojection error of a photo's keypoint under the current Sim(3)
 teacher cells of that photo at the stage's grid, rho(u) = log(1 + u^2) (Cauchy: quadratic near the answer,
 a slowly growing penalty for the correspondences RANSAC let through by mistake) and c = `KERNEL_CELLS`. The
 factor dense(T_stage_start) (detached) makes the weight independent of the descriptor's units. The
-correspondences do not depend on the start: the same anchors pull a 5° or a 15° start towards them. Photos
+correspondences do not depend on the start: the same anchors pull a 5° or a 30° start towards them (with the
+render-free pre-alignment, `Anchoring.prealign`, for far starts). Photos
 without correspondences (night, heavy occlusion, too few matches) simply contribute no keypoint term; a
 meta-image without any is registered by the dense objective alone (the paper's method).
 
@@ -58,20 +60,20 @@ class KeypointTerm:
     def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, grid_size: int, weight: float):
         by_name = {k.name: k for k in keypoints if len(k.points2D)}
         rays, points, photo, cells = [], [], [], []
-        self.cam_from_meta = []
+        cam_from_meta = []
         for photo_meta in meta.photos:
             found = by_name.get(photo_meta.name)
             if found is None:
                 continue
-            index = len(self.cam_from_meta)
-            self.cam_from_meta.append(torch.from_numpy(photo_meta.cam_from_world))
+            index = len(cam_from_meta)
+            cam_from_meta.append(torch.from_numpy(photo_meta.cam_from_world))
             rays.append(np.asarray(photo_meta.camera.cam_from_img(np.asarray(found.points2D, dtype=np.float64))))
             points.append(np.asarray(world_to_dataparser.apply(np.asarray(found.points3D, dtype=np.float64))))
             photo.append(np.full(len(found.points2D), index))
             K = photo_meta.pinhole_intrinsics()
             cell_px = max(photo_meta.camera.width, photo_meta.camera.height) / grid_size
             cells.append(np.tile([K[0, 0] / cell_px, K[1, 1] / cell_px], (len(found.points2D), 1)))
-        self.photos = len(self.cam_from_meta)
+        self.photos = len(cam_from_meta)
         self.weight = float(weight)
         if not self.photos:
             return
@@ -79,7 +81,7 @@ class KeypointTerm:
         self.points = torch.from_numpy(np.concatenate(points))
         self.photo = torch.from_numpy(np.concatenate(photo))
         self.cells = torch.from_numpy(np.concatenate(cells))
-        cameras = torch.stack(self.cam_from_meta)[self.photo]  # [M, 3, 4] cam_from_meta of each keypoint's photo
+        cameras = torch.stack(cam_from_meta)[self.photo]  # [M, 3, 4] cam_from_meta of each keypoint's photo
         self.point_rotations, self.point_translations = cameras[:, :, :3], cameras[:, :, 3]
         self.counts = torch.bincount(self.photo, minlength=self.photos).double()
 

@@ -50,6 +50,7 @@ from sg_nerfstudio.initialisers.reference_cloud import (
     build_reference_cloud,
 )
 from sg_nerfstudio.initialisers.retrieval import VisualWordIndex
+from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.splat.trained import read_trainer_config
@@ -180,15 +181,24 @@ class Initialiser:
         self.extractor = SiftExtractor(settings.sift, settings.resolved_cache_dir())
         self.matcher = VerifiedMatcher(settings.matching)
         self._cloud: Optional[ReferenceCloud] = None
+        self._cloud_error: Optional[InputError] = None
         self._index: Optional[VisualWordIndex] = None
         self._observations: dict[tuple, list[Observations]] = {}
 
     @property
     def cloud(self) -> ReferenceCloud:
+        """The reference's SIFT cloud, built once; a reference it cannot be built from raises the same InputError
+        again for every later meta-image without redoing the matching."""
+        if self._cloud_error is not None:
+            raise self._cloud_error
         if self._cloud is None:
-            self._cloud = build_reference_cloud(
-                self.source, self.extractor, self.settings.matching, self.settings.pairing, self.settings.resolved_cache_dir(), self.progress
-            )
+            try:
+                self._cloud = build_reference_cloud(
+                    self.source, self.extractor, self.settings.matching, self.settings.pairing, self.settings.resolved_cache_dir(), self.progress
+                )
+            except InputError as error:
+                self._cloud_error = error
+                raise
         return self._cloud
 
     def check_reference(self) -> None:

@@ -30,4 +30,18 @@ def teacher_feature_dim(config: TeacherConfig) -> int:
     return FEATURE_DIM if config.name == "dinov2" else OfflineTeacher.feature_dim
 
 
-__all__ = ["FeatureCache", "Teacher", "TeacherConfig", "TeacherInputError", "build_teacher", "extract_all", "teacher_feature_dim"]
+def teacher_grid_size(config: TeacherConfig) -> int:
+    """Cells along the long side of the teacher's maps, without loading it (raises TeacherInputError with
+    one sentence when the input size is not a multiple of the patch/cell size)."""
+    from sg_nerfstudio.features import dinov2, offline
+    from sg_nerfstudio.features.base import checked_grid
+
+    if config.name == "dinov2":
+        return checked_grid(config.input_size or dinov2.DEFAULT_INPUT_SIZE, dinov2.PATCH_SIZE, "DINOv2 patch size")
+    return checked_grid(config.input_size or offline.DEFAULT_INPUT_SIZE, offline.CELL, "offline descriptor cell size")
+
+
+__all__ = [
+    "FeatureCache", "Teacher", "TeacherConfig", "TeacherInputError", "build_teacher", "extract_all", "teacher_feature_dim",
+    "teacher_grid_size",
+]

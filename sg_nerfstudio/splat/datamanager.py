@@ -8,8 +8,9 @@ missing image or an unloadable teacher fails early; for ns-viewer / ns-eval ("te
 that needs them; never for rendering ("inference"). On a CPU device images are cached on that device rather than
 in pinned memory (pinning needs CUDA).
 
-The teacher's output width and a feature sample for the model's fixed PCA colouring go to the model
-through `train_dataset.metadata` ("teacher_feature_dim", "teacher_feature_sample").
+The teacher's output width and grid size and a feature sample for the model's fixed PCA colouring go to
+the model through `train_dataset.metadata` ("teacher_feature_dim", "teacher_grid_size",
+"teacher_feature_sample").
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import torch
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.features import FeatureCache, TeacherConfig, build_teacher, extract_all, teacher_feature_dim
+from sg_nerfstudio.features import FeatureCache, TeacherConfig, build_teacher, extract_all, teacher_feature_dim, teacher_grid_size
 
 PCA_SAMPLE_SIZE = 20000
 MIN_SEED_POINTS = 4
@@ -90,6 +91,7 @@ class FeatureDatamanager(FullImageDatamanager):
         if torch.device(device).type == "cpu":
             self.config.cache_images = "gpu"  # i.e. "on the training device": no pinned memory without CUDA
         self.train_dataset.metadata["teacher_feature_dim"] = teacher_feature_dim(config.teacher)
+        self.train_dataset.metadata["teacher_grid_size"] = teacher_grid_size(config.teacher)
         self._features_ready = False
         if test_mode == "val":  # training: fail early on missing images or an unloadable teacher
             self._ensure_teacher_features()

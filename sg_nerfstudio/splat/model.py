@@ -1,10 +1,13 @@
 """Feature-augmented splatfacto: the paper's reference model ("The reference model", supplement).
 
-Every Gaussian carries a learnable feature vector (default 128-d) next to its colour. Colour and
-features are rendered in one rasterization call ([rgb | features], SH colours evaluated per view) through
-`sg_nerfstudio.render.rasterize` (gsplat on CUDA, the pure-PyTorch rasterizer on CPU). The rendered
-feature map goes through the *speedup decoder* `Conv2d(feature_dim, D_teacher, 1)` and is compared with
-the teacher map after a bilinear resize to the teacher grid (antialiased when shrinking, `resize_bilinear`):
+Every Gaussian carries a learnable feature vector (default 128-d) next to its colour, rendered through
+`sg_nerfstudio.render.rasterize` (gsplat on CUDA, the CPU rasterizer otherwise). Colour is rendered at the
+training resolution; features at `feature_render_scale` x the teacher grid on the long side (4: the size the
+fast-cpu registration renders them at, about 128 px for the offline teacher), in a second rasterization of the
+same Gaussians and camera, or in the colour's own call ([rgb | features]) when that size reaches the training
+resolution or the scale is 0 (the paper). The rendered feature map goes through the *speedup decoder*
+`Conv2d(feature_dim, D_teacher, 1)` and is compared with the teacher map after a bilinear resize to the
+teacher grid (antialiased when shrinking, `resize_bilinear`):
 
     L = L_rgb (splatfacto: (1 - l) L1 + l (1 - SSIM)) + feature_loss_weight * |F_teacher - resize(decoder(F))|_1
 
@@ -12,8 +15,12 @@ Differences from `SplatfactoModel` besides the features: nothing calls `.cuda()`
 when its AlexNet weights are already on disk (else skipped with one warning); densification uses plain
 means2d gradients on the CPU backend (absgrad needs gsplat's CUDA backward).
 
-Viewer outputs: rgb, depth, accumulation, decoded `features` [H, W, D_teacher] and `feature_pca`
-[H, W, 3], a projection on a PCA basis fixed at construction from teacher features and saved in the
+Why a separate feature render: the loss only sees the teacher grid (32 cells for the offline teacher), and
+compositing 128 channels at 480x320 was most of a CPU training step (0.83 s of which the compositor's forward
+and backward 0.45 s and the 128-channel resize 0.1 s, fountain-P11 reference; README "Training speed").
+
+Viewer outputs: rgb, depth, accumulation, decoded `features` [H, W, D_teacher] (upsampled bilinearly from the
+feature render) and `feature_pca` [H, W, 3], a projection on a PCA basis fixed at construction from teacher features and saved in the
 checkpoint, so colours are stable across views and sessions.
 """
 
@@ -56,6 +63,9 @@ class FeatureSplatfactoModelConfig(SplatfactoModelConfig):
     """Length of the feature vector carried by each Gaussian."""
     feature_loss_weight: float = 1.0
     """Weight of the L1 feature loss against splatfacto's colour loss."""
+    feature_render_scale: float = 4.0
+    """Long side of the rendered feature map as a multiple of the teacher grid (never above the training
+    resolution); 0 renders features at the training resolution, in the colour's rasterization (the paper)."""
     rasterizer_backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
     """auto: gsplat's CUDA kernels on CUDA, the pure-PyTorch rasterizer on CPU."""
     densify_grad_thresh_without_absgrad: float = 0.0002
@@ -77,6 +87,8 @@ class FeatureSplatfactoModel(SplatfactoModel):
         if teacher_dim <= 0:
             raise ValueError("FeatureSplatfactoModel needs metadata['teacher_feature_dim'] from the FeatureDatamanager.")
         self.teacher_feature_dim = teacher_dim
+        self.teacher_grid_size = int(metadata.get("teacher_grid_size", 0))
+        """Cells on the long side of the teacher's maps; 0 (unknown) renders features at full resolution."""
         self.feature_decoder = torch.nn.Conv2d(self.config.feature_dim, teacher_dim, kernel_size=1)
         self._init_pca_basis(metadata.get("teacher_feature_sample"), teacher_dim)
 
@@ -228,14 +240,18 @@ class FeatureSplatfactoModel(SplatfactoModel):
         backend = resolve_backend(self.config.rasterizer_backend, self.device)
         self._configure_strategy(backend)
         render_depth = self.config.output_depth_during_training or not self.training
-        colors = torch.cat([self._view_colors(params, camera_to_world[0, :3, 3]), params["features"]], dim=1)
-        render, alpha, self.info = rasterize(
-            means=params["means"], quats=params["quats"], scales=torch.exp(params["scales"]),
-            opacities=torch.sigmoid(params["opacities"]).squeeze(-1), colors=colors, viewmats=viewmat, Ks=K,
-            width=width, height=height, near_plane=0.01, far_plane=1e10,
-            render_mode="RGB+ED" if render_depth else "RGB", rasterize_mode=self.config.rasterize_mode,
-            absgrad=self.strategy.absgrad and backend == "gsplat", backend=backend,
+        feature_size = self.feature_render_size(width, height)
+        colors = self._view_colors(params, camera_to_world[0, :3, 3])
+        if feature_size is None:
+            colors = torch.cat([colors, params["features"]], dim=1)
+        render, alpha, self.info = self._rasterize(
+            params, colors, viewmat, K, (width, height), backend,
+            render_mode="RGB+ED" if render_depth else "RGB", absgrad=self.strategy.absgrad and backend == "gsplat",
         )
+        if feature_size is None:
+            feature_render = render[0, ..., 3 : 3 + self.config.feature_dim]
+        else:
+            feature_render = self._render_features(params, viewmat, K, (width, height), feature_size, backend)
         if self.training:
             self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self.info)
 
@@ -254,8 +270,38 @@ class FeatureSplatfactoModel(SplatfactoModel):
             "depth": depth,
             "accumulation": alpha.squeeze(0),
             "background": background,
-            "feature_render": render[0, ..., 3 : 3 + self.config.feature_dim],
+            "feature_render": feature_render,
         }
+
+    def feature_render_size(self, width: int, height: int) -> Optional[Tuple[int, int]]:
+        """(width, height) of the feature render for a training image of this size, or None when the features
+        are rendered with the colour at (width, height): scale 0, unknown teacher grid, or a size that would
+        not be smaller."""
+        long_side = round(self.config.feature_render_scale * self.teacher_grid_size)
+        if long_side <= 0 or long_side >= max(width, height):
+            return None
+        factor = long_side / max(width, height)
+        return max(1, round(width * factor)), max(1, round(height * factor))
+
+    def _rasterize(self, params, colors: Tensor, viewmat: Tensor, K: Tensor, size: Tuple[int, int], backend: str, **options):
+        """`rasterize` of the (cropped) Gaussians with these [N, D] colours for one camera at size (width, height)."""
+        return rasterize(
+            means=params["means"], quats=params["quats"], scales=torch.exp(params["scales"]),
+            opacities=torch.sigmoid(params["opacities"]).squeeze(-1), colors=colors, viewmats=viewmat, Ks=K,
+            width=size[0], height=size[1], near_plane=0.01, far_plane=1e10,
+            rasterize_mode=self.config.rasterize_mode, backend=backend, **options,
+        )
+
+    def _render_features(self, params, viewmat: Tensor, K: Tensor, size: Tuple[int, int], feature_size: Tuple[int, int], backend: str) -> Tensor:
+        """[h, w, feature_dim] feature map at feature_size (w, h) of the camera whose intrinsics K [1, 3, 3] are
+        for size (width, height); outside the training loop upsampled to (height, width) for the viewer."""
+        scaled = K.clone()
+        scaled[:, 0, :] *= feature_size[0] / size[0]
+        scaled[:, 1, :] *= feature_size[1] / size[1]
+        render, _, _ = self._rasterize(params, params["features"], viewmat, scaled, feature_size, backend, render_mode="RGB")
+        if self.training:
+            return render[0]
+        return resize_bilinear(render[0].permute(2, 0, 1)[None], (size[1], size[0]))[0].permute(1, 2, 0)
 
     def _view_colors(self, params: Dict[str, Tensor], camera_centre: Tensor) -> Tensor:
         """[N, 3] colours for one view: SH up to the current degree, or sigmoid colours when sh_degree = 0."""

@@ -79,18 +79,19 @@ def test_checkpoint_round_trip_renders_identically(trained):
 
 
 def test_feature_render_size_follows_the_teacher_grid(trained):
-    """Features render at feature_render_scale x the teacher grid on the long side, jointly with the colour at
-    scale 0 or where that size would not be smaller than the image."""
+    """Features render apart at feature_render_scale x the teacher grid on the long side where that is at most
+    half the image's, else jointly with the colour (always at scale 0)."""
     model = trained[0].pipeline.model
-    assert model.teacher_grid_size == 16 and model.config.feature_render_scale == 2.0
-    assert model.feature_render_size(48, 36) == (32, 24)
-    assert model.feature_render_size(36, 48) == (24, 32)
-    assert model.feature_render_size(30, 20) is None
+    assert model.teacher_grid_size == 16 and model.config.feature_render_scale == 1.5
+    assert model.feature_render_size(48, 36) == (24, 18)
+    assert model.feature_render_size(36, 48) == (18, 24)
+    assert model.feature_render_size(480, 320) == (24, 16)
+    assert model.feature_render_size(47, 36) is None
     model.config.feature_render_scale = 0.0
     try:
         assert model.feature_render_size(480, 320) is None
     finally:
-        model.config.feature_render_scale = 2.0
+        model.config.feature_render_scale = 1.5
 
 
 def test_small_feature_render_matches_the_full_resolution_one_shrunk(trained):
@@ -109,9 +110,9 @@ def test_small_feature_render_matches_the_full_resolution_one_shrunk(trained):
         model.config.feature_render_scale = 0.0
         full = model.get_outputs(camera)["feature_render"].detach()
     finally:
-        model.config.feature_render_scale = 2.0
+        model.config.feature_render_scale = 1.5
         model.eval()
-    assert tuple(small.shape[:2]) == (24, 32) and tuple(full.shape[:2]) == (36, 48)
+    assert tuple(small.shape[:2]) == (18, 24) and tuple(full.shape[:2]) == (36, 48)
 
     def on_grid(render):
         return resize_bilinear(render.permute(2, 0, 1)[None], (12, 16))[0]
@@ -120,12 +121,12 @@ def test_small_feature_render_matches_the_full_resolution_one_shrunk(trained):
     error = (on_grid(small) - on_grid(full)).abs().mean() / scale
     assert error < 0.25, float(error)  # 0.12 here: the two sample the Gaussians at different pixel centres
     unscaled = camera.get_intrinsics_matrices().clone()
-    unscaled[:, 0, 0] *= 32 / 48
-    unscaled[:, 1, 1] *= 24 / 36
+    unscaled[:, 0, 0] *= 24 / 48
+    unscaled[:, 1, 1] *= 18 / 36
     params = dict(model.gauss_params.items())
     viewmat = viewmats_from_camera_to_worlds(camera.camera_to_worlds)
     with torch.no_grad():
-        wrong, _, _ = model._rasterize(params, params["features"], viewmat, unscaled, (32, 24), resolve_backend("auto", model.device), render_mode="RGB")
+        wrong, _, _ = model._rasterize(params, params["features"], viewmat, unscaled, (24, 18), resolve_backend("auto", model.device), render_mode="RGB")
     assert (on_grid(wrong[0]) - on_grid(full)).abs().mean() / scale > 3 * error  # 1.05 here
 
 

@@ -5,9 +5,9 @@ Every Gaussian carries a learnable feature vector (default 128-d) next to its co
 training resolution; features at `feature_render_scale` x the teacher grid on the long side (4: the size the
 fast-cpu registration renders them at, about 128 px for the offline teacher), in a second rasterization of the
 same Gaussians and camera where that is at most half the training resolution, else in the colour's own call
-([rgb | features]) at the training resolution, as always with scale 0 (the paper). The rendered feature map goes through the *speedup decoder*
-`Conv2d(feature_dim, D_teacher, 1)` and is compared with the teacher map after a bilinear resize to the
-teacher grid (antialiased when shrinking, `resize_bilinear`):
+([rgb | features]) at the training resolution, as always with scale 0 (the paper). The rendered feature map
+goes through the *speedup decoder* `Conv2d(feature_dim, D_teacher, 1)` and is compared with the teacher map
+after a bilinear resize to the teacher grid (antialiased when shrinking, `resize_bilinear`):
 
     L = L_rgb (splatfacto: (1 - l) L1 + l (1 - SSIM)) + feature_loss_weight * |F_teacher - resize(decoder(F))|_1
 
@@ -19,9 +19,9 @@ Why a separate feature render: the loss only sees the teacher grid (32 cells for
 compositing 128 channels at 480x320 was most of a CPU training step (0.83 s of which the compositor's forward
 and backward 0.45 s and the 128-channel resize 0.1 s, fountain-P11 reference; README "Training speed").
 
-Viewer outputs: rgb, depth, accumulation, decoded `features` [H, W, D_teacher] (upsampled bilinearly from the
-feature render) and `feature_pca` [H, W, 3], a projection on a PCA basis fixed at construction from teacher features and saved in the
-checkpoint, so colours are stable across views and sessions.
+Viewer outputs: rgb, depth, accumulation, decoded `features` [H, W, D_teacher] (upsampled bilinearly from a
+separate feature render) and `feature_pca` [H, W, 3], a projection on a PCA basis fixed at construction from
+teacher features and saved in the checkpoint, so colours are stable across views and sessions.
 """
 
 from __future__ import annotations

@@ -14,7 +14,6 @@ after the other in this process, never side by side.
 
 from __future__ import annotations
 
-import statistics
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -25,6 +24,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.bench.feature_splat import view_quality
 from sg_nerfstudio.bench.layout import read_scene
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.render.threads import set_threads
@@ -47,21 +47,6 @@ class Args:
     """Print progress every this many steps."""
     seeds: list[int] = field(default_factory=lambda: [42])
     """Training seeds (nerfstudio's machine.seed; 42 is its default); every scale trains once per seed."""
-
-
-def view_quality(pipeline, split: str) -> tuple[int, float, float]:
-    """(views, mean PSNR dB, mean feature cosine on the teacher grid) over the split's cached images."""
-    datamanager, model = pipeline.datamanager, pipeline.model
-    dataset, cached = (datamanager.train_dataset, datamanager.cached_train) if split == "train" else (datamanager.eval_dataset, datamanager.cached_eval)
-    psnrs, cosines = [], []
-    for index in range(len(dataset)):
-        camera = dataset.cameras[index : index + 1].to(model.device)
-        metrics, _ = model.get_image_metrics_and_images(model.get_outputs_for_camera(camera), cached[index])
-        psnrs.append(metrics["psnr"])
-        cosines.append(metrics["feature_cosine"])
-    if not psnrs:
-        return 0, float("nan"), float("nan")
-    return len(psnrs), statistics.mean(psnrs), statistics.mean(cosines)
 
 
 def train_arm(scene_dir: Path, scale: float, seed: int, steps: int, output: Path, console: Console, log_every: int) -> dict:

@@ -21,6 +21,7 @@ from sg_nerfstudio.geometry.frames import viewmat
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
 from sg_nerfstudio.registration.metrics import pose_errors
+from sg_nerfstudio.registration import optimize
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos, teacher_on_render_target
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import load_reference
@@ -458,8 +459,6 @@ def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, g
     """Targets rendered by the model at the truth (for every stage), a start 12° / 0.1 / 10% away: a coarse stage,
     27 hypotheses (the start and 8 rotations, each at 3 scales) of which 3 are optimised, then the main stage end
     at the truth; history and step count follow the stages."""
-    from sg_nerfstudio.registration import optimize
-
     original = optimize.prepare_photos
     monkeypatch.setattr(optimize, "prepare_photos", lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s))
     settings = RegistrationSettings(**{**FAST, "steps": 60, "lr": 0.01, "lr_final": 0.0005, "objective": "teacher-on-render", "render_scale": 4.0,
@@ -479,7 +478,6 @@ def test_fail_on_and_merged_leave_out_a_failed_verdict(reference_config, tiny_sc
     """Two meta-images, the second judged failed (the rule is forced here; its evidence is tested above): the
     table and transform.json carry the verdicts, merged/ holds only the first and says why, --fail-on failed
     exits with status 2 and --fail-on uncertain too."""
-    from sg_nerfstudio.registration import optimize
     from sg_nerfstudio.registration.verdict import Verdict, decide
 
     first = tiny_scene / "meta" / "front"
@@ -583,7 +581,8 @@ def test_cli_keypoint_anchors_off_when_the_reference_gives_no_sift_cloud(referen
 def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, ground_truth):
     """On the tiny scene, from 30° / 0.5 / 30% away: the keypoint term alone (20% wrong matches, no render) moves
     the start to within 0.05° of the truth, and a registration with anchors and that pre-alignment ends within
-    0.5° where the dense objective alone, from the same start, does not reach 5°."""
+    0.5° where the dense objective alone, from the same start, does not reach 5°. The pre-aligned registration runs
+    the short `prealigned_*` schedule, the dense one without anchors the full `steps`."""
     from sg_nerfstudio.registration.keypoints import Anchoring
 
     anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.2, seed=2)
@@ -592,8 +591,11 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
     prealigned = anchoring.prealign(start, meta.look_at_under(start), grid_size=32, steps=1000)
     assert pose_errors(meta.poses, prealigned, ground_truth).rotation_deg < 0.05
     settings = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render",
-                                    update_centre="look-at", keypoint_weight=3.0, keypoint_prealign_steps=1000)
+                                    update_centre="look-at", keypoint_weight=3.0, keypoint_prealign_steps=1000,
+                                    prealigned_steps=10, prealigned_lr=0.002)
     anchored = register(reference, meta, start, settings, keypoints=anchors)
     assert pose_errors(meta.poses, anchored.transform, ground_truth).rotation_deg < 0.5
+    assert anchored.steps == optimize.total_steps(settings, anchored=True) == 10
     dense_only = register(reference, meta, start, replace(settings, keypoint_weight=0.0), keypoints=anchors)
     assert pose_errors(meta.poses, dense_only.transform, ground_truth).rotation_deg > 5.0
+    assert dense_only.steps == optimize.total_steps(settings) == 30

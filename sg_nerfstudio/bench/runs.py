@@ -37,7 +37,7 @@ from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.metrics import pose_errors
-from sg_nerfstudio.registration.optimize import register
+from sg_nerfstudio.registration.optimize import register, total_steps
 from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
 from sg_nerfstudio.registration.settings import RegistrationSettings
 
@@ -149,8 +149,8 @@ class SceneRunner:
     def pending(self, meta: BenchmarkMeta, n_photos: int) -> list[RunSpec]:
         return [run for run in planned_runs(self.options, n_photos) if not record_path(self.output, self.scene.name, meta.name, run.name).is_file()]
 
-    def run(self, meta: BenchmarkMeta, loaded: MetaImage, spec: RunSpec, on_step: Callable[[int], None]) -> dict:
-        """Execute one run and write its record."""
+    def run(self, meta: BenchmarkMeta, loaded: MetaImage, spec: RunSpec, on_step: Callable[[int, int], None]) -> dict:
+        """Execute one run and write its record; `on_step(step, total steps)` after every optimisation step."""
         seed = self.options.seed + spec.sample
         meta_key = sum(map(ord, meta.name))
         subject = loaded
@@ -173,8 +173,10 @@ class SceneRunner:
             record["before"] = summary(pose_errors(poses, start, meta.ground_truth))
             base = self.options.alternatives[spec.mode] if spec.mode else self.options.settings
             settings = replace(base, seed=seed, **spec.overrides)
+            keypoints = self.keypoints(subject, settings)
+            total = total_steps(settings, anchored=bool(keypoints))
             try:
-                result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step), keypoints=self.keypoints(subject, settings))
+                result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step, total), keypoints=keypoints)
             except (InputError, FloatingPointError) as error:
                 record["refine_failure"] = str(error)
             else:

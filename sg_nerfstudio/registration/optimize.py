@@ -163,7 +163,7 @@ def register(
     Stages: the coarse-to-fine `pyramid` stages of the settings (if any; hypotheses around the start at the
     coarsest), then the main stage at the settings' teacher size. `photos` and `objective` may come prepared
     for the main stage (`prepare_photos`, `build_objective`: the teacher is built once). `on_step(step,
-    transform)` is called after every step of every stage (`total_steps(settings)` in all) with the current
+    transform)` is called after every step of every stage (`total_steps(settings, anchored)` in all) with the current
     estimate (meta -> world). `keypoints`: the photos' verified SIFT correspondences with the reference
     (`Initialiser.keypoints`); with `settings.keypoint_weight > 0` every stage adds their reprojection term
     (registration/keypoints.py).
@@ -175,15 +175,17 @@ def register(
     ns_to_world = world_to_ns.inverse()
     initial_ns = world_to_ns @ initial_world
     near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
-    main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), settings.steps, settings.lr, settings.lr_final)
+    anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
+    prealigned = prealigns(settings, bool(anchor))
+    main_steps, main_lr = main_schedule(settings, prealigned)
+    main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), main_steps, main_lr, settings.lr_final)
     initial_losses, coverage = evaluate_start(main.losses, initial_ns, meta.name)
 
     history = History([p.name for p in photos])
     report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
     stages = coarse_stages(reference, meta, settings, near_plane) + [main]
-    anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
     current, step, hypotheses = initial_ns, 0, []
-    if anchor and settings.keypoint_prealign_steps > 0:
+    if prealigned:
         current = anchor.prealign(current, update_centre(meta, current, settings), main.losses.objective.teacher.grid_size, settings.keypoint_prealign_steps)
     for index, stage in enumerate(stages):
         if index == 0 and settings.hypotheses > 0:
@@ -234,11 +236,27 @@ class Stage:
     lr_final: Optional[float]
 
 
-def total_steps(settings: RegistrationSettings) -> int:
-    """Steps of all stages (what `on_step` counts up to): each optimised hypothesis runs the first stage."""
-    first = settings.pyramid_steps if settings.pyramid else settings.steps
+def prealigns(settings: RegistrationSettings, anchored: bool) -> bool:
+    """Whether the keypoint pre-alignment runs: there are keypoint anchors and the settings ask for it."""
+    return anchored and settings.keypoint_weight > 0 and settings.keypoint_prealign_steps > 0
+
+
+def main_schedule(settings: RegistrationSettings, prealigned: bool) -> tuple[int, float]:
+    """(steps, initial learning rate) of the main stage: `prealigned_steps` / `prealigned_lr` after the keypoint
+    pre-alignment where the settings give them, else `steps` / `lr`."""
+    if not prealigned:
+        return settings.steps, settings.lr
+    steps = settings.prealigned_steps if settings.prealigned_steps is not None else settings.steps
+    return steps, settings.prealigned_lr if settings.prealigned_lr is not None else settings.lr
+
+
+def total_steps(settings: RegistrationSettings, anchored: bool = False) -> int:
+    """Steps of all stages (what `on_step` counts up to) for a meta-image with (`anchored`) or without keypoint
+    anchors: each optimised hypothesis runs the first stage."""
+    main = main_schedule(settings, prealigns(settings, anchored))[0]
+    first = settings.pyramid_steps if settings.pyramid else main
     runs = min(settings.hypotheses + 1, max(1, settings.hypotheses_kept)) if settings.hypotheses else 1
-    return settings.steps + len(settings.pyramid) * settings.pyramid_steps + (runs - 1) * first
+    return main + len(settings.pyramid) * settings.pyramid_steps + (runs - 1) * first
 
 
 MIN_COARSE_GRID = 8

@@ -232,7 +232,7 @@ def register_one(
     photos = prepare_photos(reference, meta, job.settings, objective)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console, transient=True) as progress:
-        task = progress.add_task(f"Registering {meta.name}", total=total_steps(job.settings))
+        task = progress.add_task(f"Registering {meta.name}", total=total_steps(job.settings, anchored=bool(keypoints)))
         result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective, keypoints=keypoints)
     errors = None
     if gt is not None:

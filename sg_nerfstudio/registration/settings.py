@@ -96,6 +96,11 @@ class RegistrationSettings:
     keypoint_prealign_steps: int = 0
     """With keypoint anchors: steps of the keypoint term alone (no render, a few milliseconds each) that move the
     start to the keypoints' own optimum before the first stage; 0 = off."""
+    prealigned_steps: Optional[int] = None
+    """Steps of the main stage when the keypoint pre-alignment ran (it leaves the start within a fraction of a degree,
+    where the dense objective needs neither the steps nor the learning rate that reach it from 5°); None: `steps`."""
+    prealigned_lr: Optional[float] = None
+    """Learning rate the main stage starts at after the keypoint pre-alignment (decaying to `lr_final`); None: `lr`."""
     seed: int = 0
     backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
 

@@ -98,7 +98,7 @@ def run(args: BenchArgs, console: Console) -> Path:
                 loaded = load_meta_image(meta.directory)
                 for spec in runner.pending(meta, len(loaded.photos)):
                     progress.reset(step_task, total=total_steps(options.alternatives.get(spec.mode, options.settings)), description=f"{scene.name}/{meta.name}: {spec.name}")
-                    record = runner.run(meta, loaded, spec, lambda s: progress.update(step_task, completed=s + 1))
+                    record = runner.run(meta, loaded, spec, lambda s, total: progress.update(step_task, completed=s + 1, total=total))
                     console.print(describe(record))
             progress.remove_task(step_task)
             progress.advance(scene_task)

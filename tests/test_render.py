@@ -341,3 +341,38 @@ def test_frozen_sh_colours_match_autograd_and_their_camera_gradients(degree):
     torch.testing.assert_close(ours, theirs, rtol=1e-10, atol=1e-12)
     assert (theirs == 0).any()
     torch.testing.assert_close(our_grad, their_grad, rtol=1e-8, atol=1e-10)
+
+
+def test_frozen_kernels_read_a_float32_model_without_losing_float64_arithmetic():
+    """A float32 model (as registration loads it) is read in place, yet the kernels compute in float64: the
+    outputs equal the float64 computation on the same values rounded once to float32, and the camera gradients
+    equal it to float64 precision."""
+    from sg_nerfstudio.render.frozen_projection import frozen_sh_colors, project_frozen_packed
+
+    means, quats, scales, _, _ = random_scene(300, 3, dtype=torch.float64, spread=3.0)
+    covars = covariances_from_quats_scales(quats, scales).float().double()
+    means = means.float().double()
+    coeffs = (torch.randn(300, 16, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 2.0).float().double()
+    viewmats = look_at_viewmats(2, 3, dtype=torch.float64).float().double()
+    Ks = intrinsics(2, 40, 30, 35.0, dtype=torch.float64)
+    camera_ids = torch.arange(2).repeat_interleave(150)
+    gaussian_ids = torch.arange(300)
+
+    centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[:, :, 0].float().double()
+
+    def run(dtype):
+        cameras, eyes = viewmats.to(dtype).requires_grad_(True), centres.to(dtype).requires_grad_(True)
+        proj = project_frozen_packed(means.to(dtype), covars.to(dtype), cameras, Ks.to(dtype), camera_ids, 40, 30, near_plane=0.1)
+        colours = frozen_sh_colors(means.to(dtype), coeffs.to(dtype), eyes, gaussian_ids, camera_ids, 3)
+        loss = proj.means2d.sum() + proj.conics.sum() + proj.depths.sum() + colours.sum()
+        grads = torch.autograd.grad(loss, (cameras, eyes))
+        return (proj.means2d, proj.conics, proj.cov2d, proj.depths, colours), grads
+
+    single, single_grads = run(torch.float32)
+    double, double_grads = run(torch.float64)
+    for ours, exact in zip(single, double):
+        assert ours.dtype == torch.float32
+        assert torch.equal(ours, exact.float())
+    for ours, exact in zip(single_grads, double_grads):
+        assert ours.dtype == torch.float32
+        torch.testing.assert_close(ours.double(), exact, rtol=1e-5, atol=1e-5)

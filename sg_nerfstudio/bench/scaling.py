@@ -11,13 +11,14 @@ s = k^(-1/3), same opacity, colours and features), which keeps the model's look 
 Gaussians, each smaller, on the same surfaces, as training a real landmark longer would.
 
 Per size, in a fresh process each (so that peak memory is that size's alone), for today's path (cull only,
-`--level-of-detail 0`) and the level-of-detail path (`--level-of-detail 1`, the default):
+`--level-of-detail 0`, autograd projection) and the new path (the preset's `level_of_detail` and the compiled
+frozen-model kernels):
 - load: `load_reference` of the densified checkpoint (s);
 - prepare: the first cull (and merge) around the start (s) and the Gaussians a step then renders;
 - step: median wall time of `--steps` forward renders of every photo + the pose-only backward;
 - peak resident memory of the process (ru_maxrss);
 - with `--register`: a whole registration (the preset's steps, 5° / 0.1 / 10% start, verdict included) on
-  the level-of-detail path: wall time, ΔR / ΔT against the meta-image's `gt_transform.json`.
+  the new path: wall time, ΔR / ΔT against the meta-image's `gt_transform.json`.
 
 Then `--concurrency`: the same registration of the base model twice at once and once alone, each process
 with the default `--threads` (the cores this process may use): each concurrent run's time over the solo one.
@@ -47,9 +48,10 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-MODES = {"today": (0.0, False), "lod": (1.0, True)}
-"""Benchmark paths by name: the `level_of_detail` each runs with and whether the compiled frozen-model kernels
-(`render.frozen_projection`) project and colour the model. `today` is the path before either existed."""
+MODES = {"today": (0.0, False), "new": (None, True)}
+"""Benchmark paths by name: the `level_of_detail` each runs with (None: the preset's) and whether the compiled
+frozen-model kernels (`render.frozen_projection`) project and colour the model. `today` is the path before either
+existed."""
 
 
 @dataclass
@@ -62,10 +64,12 @@ class Args:
     """Gaussians of the densified references."""
     config: str = "fast-cpu"
     """Registration preset (name or YAML)."""
+    level_of_detail: Optional[float] = None
+    """The new path's level of detail in render pixels (default: the preset's)."""
     steps: int = 5
     """Timed steps per size and path (the first, which builds the cull, is not among them)."""
     register: bool = True
-    """Also run whole registrations: both paths on the model as trained, the level-of-detail path per size."""
+    """Also run whole registrations: both paths on the model as trained, the new path per size."""
     concurrency: bool = True
     device: Literal["cpu", "cuda"] = "cpu"
     threads: Optional[int] = None
@@ -83,7 +87,8 @@ class ChildArgs:
     load_config: Path
     meta_image: Path
     config: str = "fast-cpu"
-    level_of_detail: float = 1.0
+    level_of_detail: Optional[float] = None
+    """None: the preset's."""
     frozen_kernels: bool = True
     steps: int = 5
     register: bool = False
@@ -141,7 +146,9 @@ def measure(args: ChildArgs) -> dict:
 
     rasterization.FROZEN_KERNELS = args.frozen_kernels
     threads = set_threads(args.threads)
-    settings = replace(load_preset(args.config), level_of_detail=args.level_of_detail, seed=args.seed)
+    settings = replace(load_preset(args.config), seed=args.seed)
+    if args.level_of_detail is not None:
+        settings = replace(settings, level_of_detail=args.level_of_detail)
     started = time.perf_counter()
     reference = load_reference(args.load_config, device=args.device)
     loaded = time.perf_counter() - started
@@ -170,7 +177,7 @@ def measure(args: ChildArgs) -> dict:
     step()  # warm-up: first calls of the compiled kernels
     times = [step() for _ in range(args.steps)]
     record = {
-        "gaussians": reference.count, "rendered": losses.visible.subset.count, "level_of_detail": args.level_of_detail,
+        "gaussians": reference.count, "rendered": losses.visible.subset.count, "level_of_detail": settings.level_of_detail,
         "frozen_kernels": args.frozen_kernels,
         "threads": threads, "load_s": loaded, "prepare_s": prepared, "step_s": statistics.median(times),
         "photos": len(photos), "render_size": [photos[0].width, photos[0].height],
@@ -192,11 +199,12 @@ def measure(args: ChildArgs) -> dict:
 def run_child(child: ChildArgs, wait: bool = True):
     """Start `measure(child)` in a fresh Python process; its record (or the Popen when not `wait`)."""
     command = [sys.executable, "-m", "sg_nerfstudio.bench.scaling", "child", "--load-config", str(child.load_config),
-               "--meta-image", str(child.meta_image), "--config", child.config, "--level-of-detail", str(child.level_of_detail),
+               "--meta-image", str(child.meta_image), "--config", child.config,
                "--frozen-kernels" if child.frozen_kernels else "--no-frozen-kernels",
                "--steps", str(child.steps), "--device", child.device, "--seed", str(child.seed)]
     command += ["--register"] if child.register else ["--no-register"]
     command += ["--threads", str(child.threads)] if child.threads else []
+    command += ["--level-of-detail", str(child.level_of_detail)] if child.level_of_detail is not None else []
     process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
     return read_record(process) if wait else process
 
@@ -215,7 +223,8 @@ def growth(args: Args, work: Path, console: Console) -> list[dict]:
         console.print(f"[bold]{f'{size:,} Gaussians' if size else 'the model as trained'}[/bold]")
         config = densify_run(args.load_config, size, work / f"dense-{size}", args.seed) if size else args.load_config
         for mode, (level, kernels) in MODES.items():
-            whole = args.register and (mode == "lod" or not size)  # today's path registers 1M Gaussians in hours
+            level = args.level_of_detail if level is None else level
+            whole = args.register and (mode == "new" or not size)  # today's path registers 1M Gaussians in hours
             child = ChildArgs(config, args.meta_image, args.config, level, kernels, args.steps, whole, args.device, args.threads, args.seed)
             record = {"size": size, "mode": mode, **run_child(child)}
             console.print(record)
@@ -227,7 +236,7 @@ def growth(args: Args, work: Path, console: Console) -> list[dict]:
 
 def growth_table(rows: list[dict], console: Console) -> None:
     table = Table(title="Cost per step against the reference's size (ratios: to today's path at the same size / to the smallest densified size)")
-    for column in ("Gaussians", "path", "rendered", "load s", "prepare s", "step s", "vs today", "vs smallest", "peak GB", "register s", "ΔR° / ΔT", "verdict"):
+    for column in ("Gaussians", "path", "LOD px", "rendered", "load s", "prepare s", "step s", "vs today", "vs smallest", "peak GB", "register s", "ΔR° / ΔT", "verdict"):
         table.add_column(column, justify="right")
     today = {row["size"]: row["step_s"] for row in rows if row["mode"] == "today"}
     smallest_size = min(r["size"] for r in rows if r["size"]) if any(r["size"] for r in rows) else 0
@@ -235,7 +244,7 @@ def growth_table(rows: list[dict], console: Console) -> None:
     for row in rows:
         registered = "register_s" in row
         table.add_row(
-            f"{row['gaussians']:,}", row["mode"], f"{row['rendered']:,}", f"{row['load_s']:.1f}", f"{row['prepare_s']:.2f}",
+            f"{row['gaussians']:,}", row["mode"], f"{row['level_of_detail']:g}", f"{row['rendered']:,}", f"{row['load_s']:.1f}", f"{row['prepare_s']:.2f}",
             f"{row['step_s']:.3f}", f"{row['step_s'] / today[row['size']]:.2f}", f"{row['step_s'] / smallest[row['mode']]:.2f}",
             f"{row['peak_rss_gb']:.1f}", f"{row['register_s']:.1f}" if registered else "-",
             f"{row['dR']:.2f} / {row['dT']:.3f}" if registered else "-", row.get("verdict", "-"),
@@ -245,7 +254,7 @@ def growth_table(rows: list[dict], console: Console) -> None:
 
 def concurrency(args: Args, console: Console) -> dict:
     """The base model's registration alone, then two at once (each with the default threads)."""
-    child = ChildArgs(args.load_config, args.meta_image, args.config, *MODES["lod"], 1, True, args.device, args.threads, args.seed)
+    child = ChildArgs(args.load_config, args.meta_image, args.config, args.level_of_detail, True, 1, True, args.device, args.threads, args.seed)
     solo = run_child(child)
     pair = [run_child(child, wait=False) for _ in range(2)]
     together = [read_record(process) for process in pair]

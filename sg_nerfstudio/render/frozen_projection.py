@@ -187,16 +187,15 @@ class _FrozenProjection(torch.autograd.Function):
         outputs = (np.empty((n, 2), dtype), np.empty((n, 3), dtype), np.empty((n, 3), dtype), np.empty(n, dtype))
         _forward(*arrays, ids, width, height, eps2d, max(1, min(numba.get_num_threads(), n)), *outputs)
         ctx.inputs, ctx.ids, ctx.size, ctx.dtype = arrays, ids, (width, height, eps2d), means.dtype
-        return tuple(torch.from_numpy(output).to(means.dtype) for output in outputs)
+        return tuple(torch.from_numpy(output) for output in outputs)
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_cov2d, g_depths):
         n = ctx.inputs[0].shape[0]
         upstream = [
-            torch.zeros(shape, dtype=ctx.dtype) if grad is None else grad.detach().to(ctx.dtype)
+            _as_array(torch.zeros(shape, dtype=ctx.dtype) if grad is None else grad.to(ctx.dtype))
             for grad, shape in zip((g_means2d, g_conics, g_cov2d, g_depths), ((n, 2), (n, 3), (n, 3), (n,)))
         ]
-        upstream = [_as_array(grad) for grad in upstream]
         cameras = ctx.inputs[2].shape[0]
         grads = np.empty((max(1, min(numba.get_num_threads(), n)), cameras, 3, 4))
         _backward(*ctx.inputs, ctx.ids, *ctx.size, *upstream, grads)

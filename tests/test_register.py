@@ -25,7 +25,7 @@ from sg_nerfstudio.registration import optimize
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos, teacher_on_render_target
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import load_reference
-from sg_nerfstudio.registration.robust import TrimmingRule
+from sg_nerfstudio.registration.robust import RobustAggregator, RobustSettingsError, TrimmingRule, check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.scripts.register_meta import main as register_main
 
@@ -217,6 +217,23 @@ def test_trimming_rules_drop_only_what_they_should():
     close = np.array([0.100, 0.1001, 0.125])
     assert (close <= outlier_rule.threshold(close)).all() and not (np.array([0.1, 0.1001, 0.14]) <= outlier_rule.threshold(np.array([0.1, 0.1001, 0.14]))).all()
     assert outlier_rule.trimmed_mean(one_far) == pytest.approx(0.061) and TrimmingRule("none").trimmed_mean(one_far) == pytest.approx(one_far.mean())
+
+
+def test_robust_rule_trims_only_after_its_warm_up():
+    losses = [torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in (0.10, 0.11, 0.30)]
+    aggregator = RobustAggregator(TrimmingRule("lts"), np.array([0.10, 0.11, 0.30]), warmup_steps=2)
+    for _ in range(2):  # warm-up: the plain mean, every photo counts
+        objective, kept, _ = aggregator(losses, np.arange(3))
+        assert kept.all() and float(objective) == pytest.approx(0.17)
+    objective, kept, _ = aggregator(losses, np.arange(3))
+    assert kept.tolist() == [True, True, False] and float(objective) == pytest.approx(0.105)
+
+
+@pytest.mark.parametrize("setting, value, flag", [("trim_after", 1.0, "--trim-after"), ("lts_percentile", 0.0, "--lts-percentile"), ("outlier_z", -1.0, "--outlier-z")])
+def test_robust_settings_out_of_range_are_one_sentence(setting, value, flag):
+    with pytest.raises(RobustSettingsError, match=flag):
+        check_robust_settings(RegistrationSettings(**{setting: value}))
+    check_robust_settings(RegistrationSettings(trim_after=0.5))
 
 
 def test_outlier_lts_ignores_a_wrong_photo_and_keeps_the_others(reference, meta, ground_truth):

@@ -25,7 +25,7 @@ from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
 from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
 from sg_nerfstudio.registration.reference import ReferenceModel
-from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule
+from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.registration.verdict import Verdict, decide, gather_evidence
 
@@ -169,6 +169,7 @@ def register(
     (registration/keypoints.py).
     """
     started = time.perf_counter()
+    check_robust_settings(settings)
     objective = objective or build_objective(reference, settings)
     photos = photos if photos is not None else prepare_photos(reference, meta, settings, objective)
     world_to_ns = reference.world_to_dataparser
@@ -293,7 +294,7 @@ def optimise_stage(
     losses = stage.losses
     seed = start_losses if start_losses is not None else objective_at(losses, start_ns)
     rule = TrimmingRule.of(settings)
-    aggregator = RobustAggregator(rule, seed)
+    aggregator = RobustAggregator(rule, seed, warmup_steps(settings, stage.steps))
     anchors = anchor.term(losses.objective.teacher.grid_size, rule.trimmed_mean(seed)) if anchor is not None else None
     start = start_ns.to_torch()
     centre = torch.from_numpy(update_centre(meta, start_ns, settings))
@@ -311,6 +312,11 @@ def optimise_stage(
         if on_step is not None:
             on_step(step, current_estimate(delta, centre, start))
     return current_estimate(delta, centre, start), first_step + stage.steps
+
+
+def warmup_steps(settings: RegistrationSettings, steps: int) -> int:
+    """Steps of a `steps`-step stage in which every photo counts before the robust rule trims (`trim_after`)."""
+    return int(round(settings.trim_after * steps))
 
 
 def update_centre(meta: MetaImage, transform: Sim3, settings: RegistrationSettings) -> Array:

@@ -6,7 +6,8 @@ previous loss is at most m + z * s, with m the median of the previous losses and
 (1.4826 x MAD, at least `SCALE_FLOOR` x m); only photos that stand out from the others are dropped.
 `fixed-lts`: the kept set is decided once, from the losses at the initial transform. `irls`: Cauchy weights
 1 / (1 + (L / m)^2) with m the previous median, held fixed within a step (iteratively reweighted least
-squares). `none`: the plain mean.
+squares). `none`: the plain mean. With `trim_after` > 0 every rule is the plain mean for that fraction of
+each stage's steps first (trimming once the pose has settled).
 
 Why `outlier-lts` (README, "The robust loss"): away from the answer every photo's loss sits near the same
 floor (on the real-photo scenes, from 15° starts all three photos of a meta-image within 10% of their
@@ -23,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.registration.settings import LossKind, Robust, RegistrationSettings
 
 MAD_TO_SIGMA = 1.4826
@@ -30,6 +32,20 @@ MAD_TO_SIGMA = 1.4826
 SCALE_FLOOR = 0.1
 """`outlier-lts`: the robust scale is at least this fraction of the median loss, so that photos whose losses
 happen to agree closely (MAD near 0, e.g. two of three) do not make every other photo an outlier."""
+
+
+class RobustSettingsError(InputError):
+    """A robust-loss setting outside its range."""
+
+
+def check_robust_settings(settings: RegistrationSettings) -> None:
+    """RobustSettingsError naming the first robust-loss setting outside its range."""
+    if not 0.0 < settings.lts_percentile <= 100.0:
+        raise RobustSettingsError(f"--lts-percentile must be in (0, 100], got {settings.lts_percentile}.")
+    if not settings.outlier_z > 0.0:
+        raise RobustSettingsError(f"--outlier-z must be positive (robust scales above the median), got {settings.outlier_z}.")
+    if not 0.0 <= settings.trim_after < 1.0:
+        raise RobustSettingsError(f"--trim-after must be in [0, 1) (a fraction of each stage's steps), got {settings.trim_after}.")
 
 
 def per_image_loss(rendered: Tensor, target: Tensor, kind: LossKind) -> Tensor:
@@ -76,9 +92,12 @@ class TrimmingRule:
 class RobustAggregator:
     """Turns the per-image losses of a batch into the scalar to minimise, remembering what it did."""
 
-    def __init__(self, rule: TrimmingRule, initial_losses: np.ndarray):
-        """initial_losses: [n_images] losses at the initial transform (seed the "previous iteration")."""
-        self.rule = rule
+    def __init__(self, rule: TrimmingRule, initial_losses: np.ndarray, warmup_steps: int = 0):
+        """initial_losses: [n_images] losses at the initial transform (seed the "previous iteration").
+        warmup_steps: calls in which every image counts (the plain mean) before the rule applies."""
+        if warmup_steps < 0:
+            raise ValueError(f"Robust warm-up steps must be >= 0, got {warmup_steps}.")
+        self.rule, self.warmup_steps, self.calls = rule, warmup_steps, 0
         self.previous = np.asarray(initial_losses, dtype=np.float64).copy()
         self.fixed_keep = self.previous <= rule.threshold(self.previous)
 
@@ -97,7 +116,8 @@ class RobustAggregator:
             the scalar objective, kept [B] bool (whether each image counted), weights [B].
         """
         values = torch.stack([loss.detach() for loss in losses]).double().cpu().numpy()
-        robust = self.rule.robust
+        robust = self.rule.robust if self.calls >= self.warmup_steps else "none"
+        self.calls += 1
         if robust in ("lts", "outlier-lts"):
             kept = values <= self.threshold()
         elif robust == "fixed-lts":

@@ -39,6 +39,7 @@ from sg_nerfstudio.registration.objectives import build_objective, prepare_photo
 from sg_nerfstudio.registration.optimize import RegistrationResult, register, total_steps
 from sg_nerfstudio.registration.outputs import write_outputs
 from sg_nerfstudio.registration.reference import load_reference
+from sg_nerfstudio.registration.robust import check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.registration.verdict import SEVERITY
 from sg_nerfstudio.render.threads import set_threads
@@ -154,6 +155,7 @@ def check_targets(job: RegistrationJob, names: list[str]) -> None:
 def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     """Register every meta-image of the job, write its outputs and (for several) merged/; see the module docstring."""
     read_trainer_config(job.load_config)  # fail fast on a wrong config, before heavy work
+    check_robust_settings(job.settings)
     set_threads(job.threads)
     metas = [load_meta_image(path) for path in job.meta_image]
     check_targets(job, [meta.name for meta in metas])

@@ -7,10 +7,13 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 from sg_nerfstudio.bench.layout import BenchmarkLayoutError, read_benchmark
+from sg_nerfstudio.bench.photo_losses import occlusion_of, photo_ratios, reference_config, separation
+from sg_nerfstudio.registration.settings import load_preset
 from sg_nerfstudio.scripts.bench import main as bench_main
 from sg_nerfstudio.scripts.make_scene import main as make_scene_main
 from sg_nerfstudio.synthetic.generator import SUITES
@@ -103,6 +106,19 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
     assert len(run_lines) == 1 and run_lines[0].startswith("tiny-b/rear noise-8:"), printed
     assert removed.is_file()
     assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items() if p != removed)
+
+    # bench.photo_losses reads the same references: every photo's loss ratio at the truth and 5° away.
+    scene = read_benchmark(suite)[1]
+    fractions = occlusion_of(scene)
+    assert sorted(fractions) == ["front", "rear"] and all(len(photos) == 4 for photos in fractions.values())
+    rows = photo_ratios(scene, reference_config(output, scene.name), load_preset(str(preset)), [0.0, 5.0], seed=0)
+    assert len(rows) == 2 * 8 and all(np.isfinite(row["losses"]).all() and row["losses"].min() > 0 for row in rows)
+
+
+def test_photo_loss_separation_is_the_auc_of_the_ratios():
+    assert separation(np.array([1.3, 1.4]), np.array([0.9, 1.0])) == 1.0
+    assert separation(np.array([0.9, 1.0]), np.array([1.3, 1.4])) == 0.0
+    assert separation(np.array([1.0, 1.2]), np.array([1.0, 1.1])) == pytest.approx(0.625)  # one tie counts half
 
 
 def test_bad_layout_is_one_sentence(suite, tmp_path, capsys):

@@ -12,7 +12,8 @@ import pytest
 import yaml
 
 from sg_nerfstudio.bench.layout import BenchmarkLayoutError, read_benchmark
-from sg_nerfstudio.bench.photo_losses import occlusion_of, photo_ratios, reference_config, separation
+from sg_nerfstudio.bench.photo_losses import occlusion_of, photo_ratios, separation
+from sg_nerfstudio.bench.runs import trained_reference
 from sg_nerfstudio.registration.settings import load_preset
 from sg_nerfstudio.scripts.bench import main as bench_main
 from sg_nerfstudio.scripts.make_scene import main as make_scene_main
@@ -111,7 +112,7 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
     scene = read_benchmark(suite)[1]
     fractions = occlusion_of(scene)
     assert sorted(fractions) == ["front", "rear"] and all(len(photos) == 4 for photos in fractions.values())
-    rows = photo_ratios(scene, reference_config(output, scene.name), load_preset(str(preset)), [0.0, 5.0], seed=0)
+    rows = photo_ratios(scene, trained_reference(output, scene.name)[0], load_preset(str(preset)), [0.0, 5.0], seed=0)
     assert len(rows) == 2 * 8 and all(np.isfinite(row["losses"]).all() and row["losses"].min() > 0 for row in rows)
 
 

@@ -25,6 +25,7 @@ from rich.console import Console
 from rich.table import Table
 
 from sg_nerfstudio.bench.layout import BenchmarkScene, read_benchmark
+from sg_nerfstudio.bench.runs import trained_reference
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import perturbed
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos
@@ -33,6 +34,7 @@ from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import TrimmingRule
 from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
 from sg_nerfstudio.render.threads import set_threads
+from sg_nerfstudio.scripts.cli import cli_main
 
 
 @dataclass
@@ -64,14 +66,6 @@ def occlusion_of(scene: BenchmarkScene) -> dict[str, dict[str, float]]:
         elif meta.get("photos") and "occluded_fraction" in meta["photos"][0]:  # synthetic scenes
             fractions[meta["name"]] = {photo["name"]: photo["occluded_fraction"] for photo in meta["photos"]}
     return fractions
-
-
-def reference_config(output: Path, scene: str) -> Optional[Path]:
-    marker = output / "references" / scene / "reference.json"
-    if not marker.is_file():
-        return None
-    config = Path(json.loads(marker.read_text())["config"])
-    return config if config.is_absolute() or config.is_file() else output.parent / config
 
 
 def photo_ratios(scene: BenchmarkScene, config: Path, settings: RegistrationSettings, offsets: list[float], seed: int) -> list[dict]:
@@ -107,11 +101,11 @@ def run(args: Args) -> None:
     rules = {"lts": TrimmingRule("lts"), **{f"outlier-lts z={z:g}": TrimmingRule("outlier-lts", z=z) for z in args.z}}
     rows = []
     for scene in read_benchmark(args.benchmark):
-        fractions, config = occlusion_of(scene), reference_config(args.output, scene.name)
-        if not fractions or config is None:
+        fractions, trained = occlusion_of(scene), trained_reference(args.output, scene.name)
+        if not fractions or trained is None:
             console.print(f"{scene.name}: skipped ({'no occlusion record in scene.json' if not fractions else 'no trained reference in ' + str(args.output)})")
             continue
-        for row in photo_ratios(scene, config, settings, args.offsets, args.seed):
+        for row in photo_ratios(scene, trained[0], settings, args.offsets, args.seed):
             values = row["losses"]
             row["ratio"] = float(values[row["index"]] / np.median(values))
             row["occluded"] = fractions[row["meta"].split("/", 1)[1]].get(row["photo"], float("nan"))
@@ -134,7 +128,8 @@ def run(args: Args) -> None:
 
 
 def entrypoint() -> None:
-    run(tyro.cli(Args))
+    args = tyro.cli(Args)
+    raise SystemExit(cli_main(lambda: run(args) or 0))
 
 
 if __name__ == "__main__":

@@ -116,16 +116,24 @@ def write_json_atomically(path: Path, record: dict) -> None:
     os.replace(staging, path)
 
 
+def trained_reference(output: Path, scene: str) -> Optional[tuple[Path, float]]:
+    """(config.yml, training seconds) of the scene's reference an earlier run trained into `output`, if any."""
+    marker = output / "references" / scene / "reference.json"
+    if not marker.is_file():
+        return None
+    record = json.loads(marker.read_text())
+    return (Path(record["config"]), float(record["train_s"])) if Path(record["config"]).is_file() else None
+
+
 def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Callable[[int], None]) -> tuple[Path, float]:
     """config.yml of the scene's reference model (trained now or reused) and the training wall time."""
     from sg_nerfstudio.splat.training import cpu_config, save, short_cpu_schedule, train
 
     directory = output / "references" / scene.name
     marker = directory / "reference.json"
-    if marker.is_file():
-        record = json.loads(marker.read_text())
-        if Path(record["config"]).is_file():
-            return Path(record["config"]), float(record["train_s"])
+    trained = trained_reference(output, scene.name)
+    if trained is not None:
+        return trained
     teacher = TeacherConfig(name="offline", input_size=256, cache_dir=directory / "feature_cache")
     config = short_cpu_schedule(cpu_config(scene.reference, directory / "runs", steps, teacher, experiment_name=scene.name))
     config.pipeline.datamanager.dataparser.colmap_path = scene.reference_model

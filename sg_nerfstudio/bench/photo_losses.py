@@ -26,6 +26,7 @@ from rich.table import Table
 
 from sg_nerfstudio.bench.layout import BenchmarkScene, read_benchmark
 from sg_nerfstudio.bench.runs import trained_reference
+from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import perturbed
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos
@@ -34,7 +35,6 @@ from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import TrimmingRule
 from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
 from sg_nerfstudio.render.threads import set_threads
-from sg_nerfstudio.scripts.cli import cli_main
 
 
 @dataclass
@@ -129,7 +129,11 @@ def run(args: Args) -> None:
 
 def entrypoint() -> None:
     args = tyro.cli(Args)
-    raise SystemExit(cli_main(lambda: run(args) or 0))
+    try:
+        run(args)
+    except InputError as error:  # a wrong benchmark layout, reference or preset: its one sentence, exit 1
+        Console(stderr=True).print(error.message, style="red", soft_wrap=True)
+        raise SystemExit(1) from None
 
 
 if __name__ == "__main__":

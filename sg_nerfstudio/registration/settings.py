@@ -55,9 +55,9 @@ class RegistrationSettings:
     losses are ignored."""
     trim_after: float = 0.0
     """Fraction of each stage's steps in which every photo counts (the plain mean) before the robust rule
-    trims: the rule then starts from a pose that has settled, where occluded photos stand out (away from the
-    answer every photo's loss sits near the same floor and the rule drops photos no worse than the others).
-    0: the rule from the first step (paper)."""
+    trims: the rule then starts from a pose that has settled, where occluded photos rank above the clean ones
+    (away from the answer every photo's loss sits near the same floor and the rule drops photos no worse than
+    the others). 0: the rule from the first step (paper); 0 in every preset (README, "The robust loss")."""
     images_per_step: int = 0
     """Photos rendered per step; 0 = all of them (paper)."""
     teacher_input_size: Optional[int] = None

@@ -68,8 +68,8 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
             "--compare-config", str(wide_preset)]
     assert bench_main(args) == 0, capsys.readouterr().err
     records = [json.loads(p.read_text()) for p in sorted((output / "runs").glob("*/*/*.json"))]
-    # per meta-image: 2 starts + 1 ablation + 2 noise levels (twice: both presets) + 1 subset of 3 photos; three meta-images
-    assert len(records) == 3 * 8
+    # per meta-image: 2 starts and 2 noise levels (twice: both presets) + 1 ablation + 1 subset of 3 photos; three meta-images
+    assert len(records) == 3 * 10
     for record in records:
         if record["after"] is not None:
             assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"]
@@ -91,7 +91,8 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
     rows = list(csv.DictReader((output / "results.csv").open()))
     assert len(rows) == len(records)
     results = (output / "results.md").read_text()
-    for expected in ("| perturbed (start) | 5.00 |", "| ours (perturbed init) |", "| colmap (start) |", "MTA(3,0.1)", "| none |", "| tiny-b | rear | 4 |",
+    for expected in ("| perturbed (start) | 5.00 |", "| ours (perturbed init) |", "| ours (perturbed init, wide-short) |", "| colmap (start) |",
+                     "| ours (colmap init, wide-short) |", "| colmap | colmap@wide-short | perturbed | perturbed@wide-short |", "MTA(3,0.1)", "| none |", "| tiny-b | rear | 4 |",
                      "| 8, 0.13, 8% | short | 3 |", "| 8, 0.13, 8% | wide-short | 3 |", "| outcome (ground truth) | registered |", "Accurate results flagged registered"):
         assert expected in results, expected
     assert (output / "robustness_noise.png").stat().st_size > 0 and (output / "robustness_size.png").stat().st_size > 0

@@ -1,4 +1,4 @@
-"""Teacher features: DINOv2 architecture and weight loading, the offline descriptor, the disk cache."""
+"""Teacher features: DINOv2 architecture and weight loading, the offline and dense SIFT descriptors, the disk cache."""
 
 from __future__ import annotations
 
@@ -102,19 +102,20 @@ def test_dinov2_missing_weights_error_lists_every_place(tmp_path, monkeypatch):
         load_vits14(garbage)
 
 
-@pytest.mark.parametrize("name,size,step", [("dinov2", 1000, 14), ("offline", 250, 8)])
+@pytest.mark.parametrize("name,size,step", [("dinov2", 1000, 14), ("offline", 250, 8), ("dense-sift", 250, 8)])
 def test_grid_size_must_be_a_multiple_of_the_patch(name, size, step):
     with pytest.raises(TeacherInputError, match=rf"not a positive multiple of .* \({step} pixels\)"):
         build_teacher(TeacherConfig(name=name, input_size=size, weights=None))
 
 
-def test_offline_descriptor_shape_and_appearance_invariance():
-    teacher = build_teacher(TeacherConfig(name="offline", input_size=64))
+@pytest.mark.parametrize("name,dim", [("offline", 36), ("dense-sift", 128)])
+def test_weight_free_descriptor_shape_and_appearance_invariance(name, dim):
+    teacher = build_teacher(TeacherConfig(name=name, input_size=64))
     image = smooth_image(3)
     features = teacher.extract(image)
-    assert features.shape == (6, 8, 36)  # 80x60 -> 64x48 input (aspect kept) -> 8 x 6 cells
+    assert features.shape == (6, 8, dim) and teacher.feature_dim == dim  # 80x60 -> 64x48 input (aspect kept) -> 8 x 6 cells
     portrait = smooth_image(3, height=80, width=60)
-    assert teacher.extract(portrait).shape == (8, 6, 36) == (*teacher.grid_shape(80, 60), 36)
+    assert teacher.extract(portrait).shape == (8, 6, dim) == (*teacher.grid_shape(80, 60), dim)
     # photos of any size with the same aspect ratio get the same grid (no stretch differs between them)
     assert teacher.grid_shape(120, 160) == teacher.grid_shape(60, 80) == (6, 8)
     changed_image = (image * 1.5 * torch.tensor([1.15, 1.0, 0.8])).clamp(0, 1) ** 0.8  # exposure, white balance, gamma
@@ -124,6 +125,41 @@ def test_offline_descriptor_shape_and_appearance_invariance():
     assert feature_change < 0.1 * rgb_change
     other = teacher.extract(smooth_image(4))  # but a different scene does move it
     assert ((other - features).norm() / features.norm()).item() > 5 * feature_change
+
+
+def test_dense_sift_map_follows_the_image_one_cell_per_cell():
+    """Output (i, j) describes the neighbourhood of cell (i, j): moving the image by one cell (8 px) moves the
+    map by one cell, and a structure's descriptor sits at the cell the structure is in."""
+    from sg_nerfstudio.features.dense_sift import CELL
+
+    teacher = build_teacher(TeacherConfig(name="dense-sift", input_size=96))
+    image = smooth_image(5, height=72, width=96)  # exactly the input size: 9 x 12 cells, no resize
+    features = teacher.extract(image)
+    moved = teacher.extract(torch.roll(image, shifts=(CELL, 2 * CELL), dims=(0, 1)))
+    torch.testing.assert_close(moved[3:-1, 4:-1], features[2:-2, 2:-3], rtol=0, atol=1e-5)
+    flat = torch.full((72, 96, 3), 0.4)
+    flat[36:44, 48:56] = 0.8  # a bright square centred 4.5 cells down and 6 across (cell centres at 0, 1, ...)
+    sees_square = teacher.extract(flat).norm(dim=-1) > 0.5  # RootSIFT: unit length where there is structure, ~0 where flat
+    rows, columns = torch.nonzero(sees_square, as_tuple=True)
+    assert 0 < len(rows) < sees_square.numel() / 4
+    assert (rows.float().mean().item(), columns.float().mean().item()) == (4.5, 6.0)  # the cells that see it surround it
+
+
+def test_dense_sift_sampled_pooling_is_kornias_dense_sift():
+    """The descriptors pooled only where kornia samples its pooled maps are kornia's, values and gradients."""
+    teacher = build_teacher(TeacherConfig(name="dense-sift", input_size=64))
+    torch.manual_seed(0)
+    for height, width in ((48, 64), (64, 40), (8, 16)):
+        image = torch.rand(2, 1, height, width, dtype=torch.float64)
+        image[0, :, : height // 2] = 0.3  # flat: zero descriptors, zero gradients
+        ours, theirs = image.clone().requires_grad_(True), image.clone().requires_grad_(True)
+        weights = torch.rand(2, 128, height // 8, width // 8, dtype=torch.float64)
+        (teacher.sampled_descriptors(ours) * weights).sum().backward()
+        reference = teacher.descriptor.double()(theirs)
+        (reference * weights).sum().backward()
+        torch.testing.assert_close(teacher.sampled_descriptors(image), reference.detach(), rtol=0, atol=1e-12)
+        torch.testing.assert_close(ours.grad, theirs.grad, rtol=1e-9, atol=1e-12)
+        teacher.descriptor.float()
 
 
 def test_offline_sobel_matches_the_convolution_it_replaces():
@@ -230,12 +266,12 @@ def test_cache_hits_misses_and_corruption(tmp_path, capsys):
     assert re.search(r"Ignoring corrupt feature cache file", capsys.readouterr().out)
 
 
-@pytest.mark.parametrize("name", ["offline", "dinov2"])
+@pytest.mark.parametrize("name", ["offline", "dense-sift", "dinov2"])
 def test_describe_is_extract_with_gradients_and_a_forced_grid(name, random_vits14):
     """Registration's teacher-on-render objective differentiates the teacher through the rendered image."""
     torch.manual_seed(0)
-    if name == "offline":
-        teacher = build_teacher(TeacherConfig(name="offline", input_size=64, device="cpu"))
+    if name != "dinov2":
+        teacher = build_teacher(TeacherConfig(name=name, input_size=64, device="cpu"))
     else:
         teacher = Dinov2Teacher(TeacherConfig(name="dinov2", input_size=56, device="cpu"), model=random_vits14)
     image = torch.rand(30, 40, 3)

@@ -22,7 +22,9 @@ from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration import optimize
-from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos, teacher_on_render_target
+from sg_nerfstudio.registration.objectives import (
+    ObjectiveSettingsError, PhotoLosses, build_objective, prepare_photos, teacher_on_render_target,
+)
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import RobustAggregator, RobustSettingsError, TrimmingRule, check_robust_settings
@@ -126,13 +128,13 @@ def test_teacher_on_render_target_sees_the_photo_as_the_render_is_seen():
     assert (teacher.extract(photo.float() / 255.0) - from_render).abs().max() > 1e-2
 
 
-@pytest.mark.parametrize("objective", ["features", "teacher-on-render"])
-def test_registration_converges_where_the_optimum_is_known_and_leaves_the_model_untouched(objective, reference, meta, ground_truth):
+@pytest.mark.parametrize("objective,render_teacher", [("features", None), ("teacher-on-render", None), ("teacher-on-render", "dense-sift")])
+def test_registration_converges_where_the_optimum_is_known_and_leaves_the_model_untouched(objective, render_teacher, reference, meta, ground_truth):
     """Targets rendered by the model itself at the ground truth: the optimum is exactly the ground truth,
     so this checks frames, gradients, the update and the loop independently of how good the model is."""
     before_digest = checkpoint_digest(reference.checkpoint_path)
     before_state = {k: v.clone() for k, v in reference.model.state_dict().items()}
-    settings = RegistrationSettings(**FAST, objective=objective)
+    settings = RegistrationSettings(**FAST, objective=objective, render_teacher=render_teacher)
     photos = rendered_targets(reference, meta, prepare_photos(reference, meta, settings), ground_truth, settings)
     start = perturbed_start(meta, ground_truth, 0, 4.0, 0.06, 0.06)
     result = register(reference, meta, start, settings, photos=photos)
@@ -145,6 +147,20 @@ def test_registration_converges_where_the_optimum_is_known_and_leaves_the_model_
     for key, value in reference.model.state_dict().items():
         assert torch.equal(value, before_state[key]), key
     assert checkpoint_digest(reference.checkpoint_path) == before_digest
+
+
+def test_render_teacher_replaces_the_reference_teacher_only_where_renders_are_described(reference):
+    """--render-teacher: the photos and renders are described by the named descriptor (at its own default input
+    size unless one is given); the features objective, which compares the distilled field, refuses it."""
+    assert reference.teacher.name == "offline"
+    sift = build_objective(reference, RegistrationSettings(**FAST, objective="teacher-on-render", render_teacher="dense-sift"))
+    assert sift.teacher.settings()["teacher"] == "dense_sift" and sift.teacher.input_size == 256
+    sized = build_objective(reference, RegistrationSettings(**FAST, objective="photometric", render_teacher="dense-sift", teacher_input_size=128))
+    assert sized.teacher.grid_size == 16
+    own = build_objective(reference, RegistrationSettings(**FAST, objective="teacher-on-render", render_teacher="offline"))
+    assert own.teacher.input_size == reference.teacher.input_size and own.teacher.settings()["teacher"] == "offline_hog"
+    with pytest.raises(ObjectiveSettingsError, match=r"--render-teacher dense-sift describes rendered images .* the features objective compares"):
+        build_objective(reference, RegistrationSettings(**FAST, objective="features", render_teacher="dense-sift"))
 
 
 def test_batched_rendering_gives_the_per_photo_losses(reference, meta, ground_truth, monkeypatch):
@@ -339,12 +355,13 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 @pytest.mark.parametrize("case", [
     "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size",
-    "negative_scale", "nan_init", "sees_nothing",
+    "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
 def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
     meta_dir = copy_meta(tiny_scene, tmp_path)
     config = reference_config
     init = "identity"
+    extra: list[str] = []
     gt = meta_dir / "gt_transform.json"
     expected = {
         "not_feature_splat": "expected an sg-feature-splat model",
@@ -356,6 +373,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "negative_scale": "scale must be positive",
         "nan_init": "finite 4x4",
         "sees_nothing": "renders nothing",
+        "render_teacher_on_features": "--render-teacher dense-sift describes rendered images",
     }[case]
     if case == "not_feature_splat":
         from nerfstudio.configs.method_configs import method_configs
@@ -387,11 +405,13 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         far[:3, 3] = [1e4, 1e4, 1e4]
         init = str(tmp_path / "init.json")
         Path(init).write_text(json.dumps({"matrix": (far @ np.array(json.loads(gt.read_text())["matrix"])).tolist()}))
+    elif case == "render_teacher_on_features":
+        extra = ["--objective", "features", "--render-teacher", "dense-sift"]
     out = tmp_path / "out"
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     code, err = run_cli([
         "--load-config", str(config), "--meta-image", str(meta_dir), "--output-dir", str(out), "--init", init,
-        "--steps", "3", "--images-per-step", "2",
+        "--steps", "3", "--images-per-step", "2", *extra,
     ], capsys)
     assert code == 1
     assert expected in err, err

@@ -53,18 +53,32 @@ def row_metrics(errors: list[Optional[dict]]) -> dict:
 
 
 def table1(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
-    """The paper's Table 1: each initialiser alone, then our registration started from it."""
+    """The paper's Table 1: each initialiser alone, then our registration started from it (with the main preset,
+    then with each `--compare-config` preset: rows "ours (<init> init, <preset>)")."""
     lines = ["| method | ΔR (°) | ΔT | MTA (%) | O (%) | #Failures |", "|---|---|---|---|---|---|"]
     for init in initialisers:
         runs = [r for r in records if r["family"] == "table1" and r["run"] == init]
         if not runs:
             continue
         baseline = row_metrics([r["before"] for r in runs])
-        ours = row_metrics([r["after"] if r["before"] is not None else None for r in runs if r["before"] is not None])
         lines.append(_metrics_row(f"{init} (start)", baseline, f"{baseline['failures']}/{baseline['n']}"))
-        refine_failures = sum(r["before"] is not None and r["after"] is None for r in runs)
-        lines.append(_metrics_row(f"ours ({init} init)", ours, f"{refine_failures} registration errors" if refine_failures else "-"))
+        for mode in _table1_modes(records, init):
+            mode_runs = [r for r in records if r["family"] == "table1" and r["run"] == _table1_run(init, mode)]
+            started = [r for r in mode_runs if r["before"] is not None]
+            ours = row_metrics([r["after"] for r in started])
+            refine_failures = sum(r["after"] is None for r in started)
+            name = f"ours ({init} init)" if not mode else f"ours ({init} init, {mode})"
+            lines.append(_metrics_row(name, ours, f"{refine_failures} registration errors" if refine_failures else "-"))
     return lines
+
+
+def _table1_modes(records: list[dict], init: str) -> list[str]:
+    """"" (the main preset), then the `--compare-config` presets the initialiser's start was also refined with."""
+    return ["", *sorted({r["mode"] for r in records if r["family"] == "table1" and r.get("mode") and r["start"] == init})]
+
+
+def _table1_run(init: str, mode: str) -> str:
+    return f"{init}@{mode}" if mode else init
 
 
 def _metrics_row(name: str, m: dict, failures: str) -> str:
@@ -91,14 +105,15 @@ def threshold_sweeps(records: list[dict], initialisers: tuple[str, ...]) -> list
 
 def per_meta(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
     """One row per meta-image: for each start, ΔR / ΔT before -> after (or why it failed)."""
-    lines = ["| scene | meta-image | photos | " + " | ".join(initialisers) + " |", "|---|---|---|" + "---|" * len(initialisers)]
+    columns = [_table1_run(init, mode) for init in initialisers for mode in _table1_modes(records, init)]
+    lines = ["| scene | meta-image | photos | " + " | ".join(columns) + " |", "|---|---|---|" + "---|" * len(columns)]
     by_meta: dict[tuple[str, str], dict[str, dict]] = defaultdict(dict)
     for r in records:
         if r["family"] == "table1":
             by_meta[(r["scene"], r["meta"])][r["run"]] = r
     for (scene, meta), runs in sorted(by_meta.items()):
         photos = next(iter(runs.values()))["photos"]
-        cells = [_transition(runs.get(init)) for init in initialisers]
+        cells = [_transition(runs.get(column)) for column in columns]
         lines.append(f"| {scene} | {meta} | {photos} | " + " | ".join(cells) + " |")
     return lines
 

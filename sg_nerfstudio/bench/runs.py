@@ -8,7 +8,8 @@ Runs per meta-image (`RunSpec.name`):
 - `<initialiser>` for each of `--initialisers`: `colmap` / `generalized` (sg_nerfstudio.initialisers, the
   paper's baselines) or `perturbed` (the ground truth moved by 5°, 0.1 and 10% in random directions about
   the cameras' centroid, the synthetic start of the accuracy benchmark); the record holds the start's
-  errors (Table 1's baseline rows) and the registration's (the "ours (... init)" rows);
+  errors (Table 1's baseline rows) and the registration's (the "ours (... init)" rows); `<initialiser>@<preset>`
+  for each of `--compare-config` (the same start, computed once, another preset);
 - `ablation-<row>` for each of `--ablations` (settings changed as in the registration benchmark), from the
   `perturbed` start;
 - `noise-<deg>[-s<k>]` for each of `--noise-levels` (`--noise-samples` random directions each): the ground truth moved by <deg>° about a random axis, with
@@ -92,6 +93,7 @@ class RunSpec:
 def planned_runs(options: BenchOptions, n_photos: int) -> list[RunSpec]:
     """Every run for one meta-image of `n_photos` photos, in execution order."""
     runs = [RunSpec(init, "table1", init, init) for init in options.initialisers]
+    runs += [RunSpec(f"{init}@{mode}", "table1", init, init, mode=mode) for init in options.initialisers for mode in options.alternatives]
     runs += [RunSpec(f"ablation-{name}", "ablation", "perturbed", name, ABLATIONS[name]) for name in options.ablations]
     runs += [
         RunSpec(f"noise-{level:g}" + (f"-s{sample}" if sample else "") + (f"@{mode}" if mode else ""), "noise", "noise", f"{level:g}",
@@ -153,6 +155,8 @@ class SceneRunner:
         self.reference: ReferenceModel = load_reference(config_path)
         self.initialiser = Initialiser(ReferenceSource(scene.reference / scene.reference_model, scene.reference / "images"), InitialiserSettings())
         self.reference_unusable: Optional[str] = None  # why the initialisers cannot use this reference, once known
+        self.initial: dict[tuple[str, str], tuple[Optional[Sim3], Optional[str]]] = {}
+        """(meta-image, initialiser) -> its start, so the `--compare-config` runs start where the main one did."""
 
     def pending(self, meta: BenchmarkMeta, n_photos: int) -> list[RunSpec]:
         return [run for run in planned_runs(self.options, n_photos) if not record_path(self.output, self.scene.name, meta.name, run.name).is_file()]
@@ -210,16 +214,23 @@ class SceneRunner:
         """The initial transform of a run, or (None, the initialiser's failure sentence)."""
         truth = meta.ground_truth
         if spec.start in METHODS:
-            if self.reference_unusable is None:
-                try:
-                    outcome = self.initialiser(subject, spec.start)
-                    return outcome.transform, outcome.failure
-                except InputError as error:  # e.g. the reference images share too few SIFT matches
-                    self.reference_unusable = str(error)
-            return None, self.reference_unusable
+            key = (meta.name, spec.start)
+            if key not in self.initial:
+                self.initial[key] = self.initialised(subject, spec.start)
+            return self.initial[key]
         degrees = spec.rotation_noise_deg
         noise = (degrees, degrees * NOISE_PER_DEGREE[0], degrees * NOISE_PER_DEGREE[1]) if spec.start == "noise" else PERTURBED_START
         return perturbed(truth, subject.centres, rng, *noise), None
+
+    def initialised(self, subject: MetaImage, method: str) -> tuple[Optional[Sim3], Optional[str]]:
+        """The initialiser's transform, or (None, its failure sentence)."""
+        if self.reference_unusable is None:
+            try:
+                outcome = self.initialiser(subject, method)
+                return outcome.transform, outcome.failure
+            except InputError as error:  # e.g. the reference images share too few SIFT matches
+                self.reference_unusable = str(error)
+        return None, self.reference_unusable
 
 
 def summary(errors) -> dict:

@@ -1,7 +1,9 @@
 """Teacher features: the 2D feature maps the feature splat distils and registration matches.
 
 - `dinov2`: DINOv2 ViT-S/14 patch tokens (the paper's choice), weights from local files only;
-- `offline`: a weight-free oriented-gradient descriptor, so everything runs without DINOv2.
+- `offline`: a weight-free oriented-gradient descriptor, so everything runs without DINOv2;
+- `dense-sift`: kornia's dense RootSIFT, weight-free and more discriminative than `offline` (compared in the
+  README, "Dense SIFT as the render teacher").
 Maps are cached on disk per image content and settings (`cache.py`).
 """
 
@@ -19,29 +21,44 @@ def build_teacher(config: TeacherConfig) -> Teacher:
         from sg_nerfstudio.features.offline import OfflineTeacher
 
         return OfflineTeacher(config)
-    raise TeacherInputError(f"Unknown teacher {config.name!r}; expected 'dinov2' or 'offline'.")
+    if config.name == "dense-sift":
+        from sg_nerfstudio.features.dense_sift import DenseSiftTeacher
+
+        return DenseSiftTeacher(config)
+    raise TeacherInputError(f"Unknown teacher {config.name!r}; expected 'dinov2', 'offline' or 'dense-sift'.")
+
+
+def _teacher_constants(name: str) -> tuple[int, int, int, str]:
+    """(feature dim, default input size, patch/cell pixels, what the cell is called) of a teacher, without loading it."""
+    from sg_nerfstudio.features import dense_sift, dinov2, offline
+
+    if name == "dinov2":
+        return dinov2.FEATURE_DIM, dinov2.DEFAULT_INPUT_SIZE, dinov2.PATCH_SIZE, "DINOv2 patch size"
+    if name == "dense-sift":
+        return dense_sift.DenseSiftTeacher.feature_dim, dense_sift.DEFAULT_INPUT_SIZE, dense_sift.CELL, "dense SIFT cell size"
+    return offline.OfflineTeacher.feature_dim, offline.DEFAULT_INPUT_SIZE, offline.CELL, "offline descriptor cell size"
 
 
 def teacher_feature_dim(config: TeacherConfig) -> int:
     """Output width of a teacher without loading it (needed to build a model for inference)."""
-    from sg_nerfstudio.features.dinov2 import FEATURE_DIM
-    from sg_nerfstudio.features.offline import OfflineTeacher
+    return _teacher_constants(config.name)[0]
 
-    return FEATURE_DIM if config.name == "dinov2" else OfflineTeacher.feature_dim
+
+def teacher_input_size(config: TeacherConfig) -> int:
+    """The long side the teacher resizes images to: `config.input_size` or the teacher's default."""
+    return config.input_size or _teacher_constants(config.name)[1]
 
 
 def teacher_grid_size(config: TeacherConfig) -> int:
     """Cells along the long side of the teacher's maps, without loading it (raises TeacherInputError with
     one sentence when the input size is not a multiple of the patch/cell size)."""
-    from sg_nerfstudio.features import dinov2, offline
     from sg_nerfstudio.features.base import checked_grid
 
-    if config.name == "dinov2":
-        return checked_grid(config.input_size or dinov2.DEFAULT_INPUT_SIZE, dinov2.PATCH_SIZE, "DINOv2 patch size")
-    return checked_grid(config.input_size or offline.DEFAULT_INPUT_SIZE, offline.CELL, "offline descriptor cell size")
+    _, _, cell, what = _teacher_constants(config.name)
+    return checked_grid(teacher_input_size(config), cell, what)
 
 
 __all__ = [
     "FeatureCache", "Teacher", "TeacherConfig", "TeacherInputError", "build_teacher", "extract_all", "teacher_feature_dim",
-    "teacher_grid_size",
+    "teacher_grid_size", "teacher_input_size",
 ]

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import FeatureCache, Teacher, TeacherConfig, build_teacher, extract_all
 from sg_nerfstudio.features.base import resize_bilinear
 from sg_nerfstudio.geometry.frames import viewmat
@@ -113,9 +114,33 @@ class Photometric(Objective):
 OBJECTIVES: dict[str, type[Objective]] = {kind.name: kind for kind in (DecodedFeatures, TeacherOnRender, Photometric)}
 
 
+class ObjectiveSettingsError(InputError):
+    """Registration settings that name a teacher the objective cannot use."""
+
+
+def objective_teacher_config(reference: ReferenceModel, settings: RegistrationSettings) -> TeacherConfig:
+    """The teacher the objective describes photos with: the reference's own, or `render_teacher` (teacher-on-render
+    and photometric only), at `teacher_input_size` when set, else the reference's input size for its own teacher
+    and the render teacher's default for another one."""
+    check_objective_settings(settings)
+    name = settings.render_teacher or reference.teacher.name
+    if name == reference.teacher.name:
+        return replace(reference.teacher, input_size=settings.teacher_input_size or reference.teacher.input_size)
+    return replace(reference.teacher, name=name, input_size=settings.teacher_input_size)
+
+
+def check_objective_settings(settings: RegistrationSettings) -> None:
+    """One sentence (ObjectiveSettingsError) for a render teacher given to the features objective, before any work."""
+    if settings.render_teacher is not None and settings.objective == "features":
+        raise ObjectiveSettingsError(
+            f"--render-teacher {settings.render_teacher} describes rendered images (--objective teacher-on-render or photometric), "
+            "but the features objective compares the reference's distilled feature field; leave --render-teacher unset or change the objective."
+        )
+
+
 def build_objective(reference: ReferenceModel, settings: RegistrationSettings) -> Objective:
-    """The objective the settings name, with the reference model's teacher at the settings' input size."""
-    config = replace(reference.teacher, input_size=settings.teacher_input_size or reference.teacher.input_size)
+    """The objective the settings name, with its teacher (`objective_teacher_config`)."""
+    config = objective_teacher_config(reference, settings)
     return OBJECTIVES[settings.objective](build_teacher(config), config)
 
 

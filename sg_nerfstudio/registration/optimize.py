@@ -23,7 +23,10 @@ from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
-from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
+from sg_nerfstudio.features import teacher_input_size
+from sg_nerfstudio.registration.objectives import (
+    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos,
+)
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
@@ -269,7 +272,7 @@ def coarse_stages(reference: ReferenceModel, meta: MetaImage, settings: Registra
     """The `pyramid` stages, coarsest first: the teacher at its input size divided by each factor (cells that
     many times larger in the photo), the learning rate multiplied by it and decaying tenfold within the stage."""
     stages = []
-    main_size = settings.teacher_input_size or reference.teacher.input_size
+    main_size = teacher_input_size(objective_teacher_config(reference, settings))
     for factor in sorted(settings.pyramid, reverse=True):
         if factor < 2:
             raise ValueError(f"Pyramid factors must be at least 2 (the main stage is factor 1), got {factor}.")

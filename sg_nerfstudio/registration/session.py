@@ -35,7 +35,7 @@ from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
-from sg_nerfstudio.registration.objectives import build_objective, prepare_photos
+from sg_nerfstudio.registration.objectives import build_objective, check_objective_settings, prepare_photos
 from sg_nerfstudio.registration.optimize import RegistrationResult, register, total_steps
 from sg_nerfstudio.registration.outputs import write_outputs
 from sg_nerfstudio.registration.reference import load_reference
@@ -156,6 +156,7 @@ def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     """Register every meta-image of the job, write its outputs and (for several) merged/; see the module docstring."""
     read_trainer_config(job.load_config)  # fail fast on a wrong config, before heavy work
     check_robust_settings(job.settings)
+    check_objective_settings(job.settings)
     set_threads(job.threads)
     metas = [load_meta_image(path) for path in job.meta_image]
     check_targets(job, [meta.name for meta in metas])
@@ -249,7 +250,7 @@ def default_preset(load_config: Path, device: str) -> str:
     if resolve_device(device) == "cuda":
         return "paper"
     teacher = read_trainer_config(load_config).pipeline.datamanager.teacher.name
-    return "fast-cpu" if teacher == "offline" else "fast-cpu-features"
+    return "fast-cpu-features" if teacher == "dinov2" else "fast-cpu"  # weight-free teachers run on the renders
 
 
 def resolve_device(device: str) -> str:

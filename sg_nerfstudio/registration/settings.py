@@ -61,7 +61,12 @@ class RegistrationSettings:
     images_per_step: int = 0
     """Photos rendered per step; 0 = all of them (paper)."""
     teacher_input_size: Optional[int] = None
-    """Teacher input size for the photos; default: the one the reference model was trained with."""
+    """Teacher input size for the photos; default: the one the reference model was trained with (or the render
+    teacher's own default when `render_teacher` names another one)."""
+    render_teacher: Optional[Literal["offline", "dense-sift"]] = None
+    """teacher-on-render and photometric only: the weight-free descriptor applied to the renders and the photos
+    (offline: oriented-gradient histograms; dense-sift: kornia's dense RootSIFT); default: the reference's own
+    teacher. The `features` objective compares the model's distilled field, so it always uses that teacher."""
     render_scale: float = 2.0
     """Long side of the renders as a multiple of the teacher grid (the paper renders at full resolution;
     1-2 keeps CPU cost low for `features`, whose renders are resized to the grid). Never more than the

@@ -50,6 +50,18 @@ def test_training_reduces_colour_and_feature_losses(trained):
         assert late < 0.8 * early, f"{key}: {early:.4f} -> {late:.4f}"
 
 
+def test_the_dense_sift_teacher_trains_a_128_channel_field(tiny_scene, tmp_path):
+    """`--pipeline.datamanager.teacher.name dense-sift`: the model decodes to kornia's 128-d RootSIFT and fits it."""
+    from sg_nerfstudio.splat.training import train
+
+    torch.manual_seed(0)
+    config = make_config(tiny_scene / "reference", tmp_path, 60, TeacherConfig(name="dense-sift", input_size=128, cache_dir=tmp_path / "cache"))
+    history = []
+    trainer = train(config, lambda step, trainer, losses: history.append(float(losses["feature_loss"].detach())))
+    assert trainer.pipeline.model.teacher_feature_dim == 128
+    assert all(torch.isfinite(torch.tensor(history))) and window_mean([{"f": v} for v in history], "f", 45, 60) < 0.8 * history[0]
+
+
 def test_densification_changes_count_and_keeps_tensors_aligned(trained):
     trainer, history, _ = trained
     counts = {h["n"] for h in history}

@@ -58,6 +58,44 @@ class Teacher(Protocol):
         """`extract` with gradients, on the image's device; `grid` = (rows, columns) forces the map's shape."""
 
 
+class CellDescriptor:
+    """A weight-free teacher that describes every cell of `cell` x `cell` pixels of the image resized to
+    `input_size` on its long side (aspect ratio kept). Subclasses set `cell`, `default_input_size`, `cell_name`
+    and `feature_dim` and implement `describe_resized`."""
+
+    cell: int
+    default_input_size: int
+    cell_name: str
+    feature_dim: int
+
+    def __init__(self, config: TeacherConfig):
+        self.input_size = config.input_size or self.default_input_size
+        self.grid_size = checked_grid(self.input_size, self.cell, self.cell_name)
+        self.device = resolve_device(config.device)
+
+    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
+        rows, columns = input_shape(height, width, self.input_size, self.cell)
+        return rows // self.cell, columns // self.cell
+
+    @torch.no_grad()
+    def extract(self, image: Tensor) -> Tensor:
+        return self.describe(image.to(self.device, torch.float32)).cpu()
+
+    def describe(self, image: Tensor, grid: Optional[tuple[int, int]] = None) -> Tensor:
+        """Differentiable `extract` on the image's device: [H, W, 3] -> [rows, columns, feature_dim].
+
+        `grid` (rows, columns) forces the map's shape (the image is resized to grid * cell pixels); by default
+        it is `grid_shape(H, W)`. Registration uses it to describe renders whose size differs from the photo's.
+        """
+        rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
+        pixels = resize_bilinear(image.permute(2, 0, 1)[None], (rows * self.cell, columns * self.cell))
+        return self.describe_resized(pixels)[0].permute(1, 2, 0)
+
+    def describe_resized(self, pixels: Tensor) -> Tensor:
+        """[1, 3, rows * cell, columns * cell] in [0, 1] -> [1, feature_dim, rows, columns]."""
+        raise NotImplementedError
+
+
 def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")

@@ -23,13 +23,11 @@ much narrower basin with it. The presets keep the offline descriptor; `--render-
 
 from __future__ import annotations
 
-from typing import Optional
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sg_nerfstudio.features.base import TeacherConfig, TeacherInputError, checked_grid, input_shape, resize_bilinear, resolve_device
+from sg_nerfstudio.features.base import CellDescriptor, TeacherConfig, TeacherInputError
 
 CELL = 8
 SPATIAL_BIN = 4
@@ -51,9 +49,10 @@ def _kornia_padding() -> int:
     return int(padding)
 
 
-class DenseSiftTeacher:
+class DenseSiftTeacher(CellDescriptor):
     """image [H, W, 3] in [0, 1] -> [rows, columns, 128] dense RootSIFT (long side: input_size / 8)."""
 
+    cell, default_input_size, cell_name = CELL, DEFAULT_INPUT_SIZE, "dense SIFT cell size"
     feature_dim = ANGLE_BINS * SPATIAL_BINS**2
 
     def __init__(self, config: TeacherConfig):
@@ -61,9 +60,7 @@ class DenseSiftTeacher:
             from kornia.feature import DenseSIFTDescriptor
         except ImportError:
             raise TeacherInputError("The dense-sift teacher needs kornia (pip install kornia); it is not importable here.") from None
-        self.input_size = config.input_size or DEFAULT_INPUT_SIZE
-        self.grid_size = checked_grid(self.input_size, CELL, "dense SIFT cell size")
-        self.device = resolve_device(config.device)
+        super().__init__(config)
         self.descriptor = DenseSIFTDescriptor(
             num_ang_bins=ANGLE_BINS, num_spatial_bins=SPATIAL_BINS, spatial_bin_size=SPATIAL_BIN, rootsift=True,
             stride=CELL, padding=_kornia_padding(),
@@ -73,25 +70,9 @@ class DenseSiftTeacher:
         return {"teacher": "dense_sift", "version": VERSION, "input_size": self.input_size, "cell": CELL,
                 "spatial_bin": SPATIAL_BIN, "spatial_bins": SPATIAL_BINS, "angle_bins": ANGLE_BINS}
 
-    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
-        rows, columns = input_shape(height, width, self.input_size, CELL)
-        return rows // CELL, columns // CELL
-
-    @torch.no_grad()
-    def extract(self, image: Tensor) -> Tensor:
-        return self.describe(image.to(self.device, torch.float32)).cpu()
-
-    def describe(self, image: Tensor, grid: Optional[tuple[int, int]] = None) -> Tensor:
-        """Differentiable `extract` on the image's device: [H, W, 3] -> [rows, columns, 128].
-
-        `grid` (rows, columns) forces the map's shape (the image is resized to grid * CELL pixels); by default
-        it is `grid_shape(H, W)`.
-        """
-        pixels = image.permute(2, 0, 1)[None]
-        rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
-        pixels = resize_bilinear(pixels, (rows * CELL, columns * CELL))
-        log_intensity = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).mean(dim=1, keepdim=True)  # [1, 1, 8 rows, 8 columns]
-        return self.sampled_descriptors(log_intensity)[0].permute(1, 2, 0)
+    def describe_resized(self, pixels: Tensor) -> Tensor:
+        """[1, 3, 8 rows, 8 columns] -> [1, 128, rows, columns], on the mean of the log colour channels."""
+        return self.sampled_descriptors(torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).mean(dim=1, keepdim=True))
 
     def sampled_descriptors(self, image: Tensor) -> Tensor:
         """kornia's dense SIFT of [B, 1, H, W] (H, W multiples of CELL) at the cell centres: [B, 128, H / 8, W / 8].
@@ -103,9 +84,9 @@ class DenseSiftTeacher:
         """
         descriptor = self.descriptor
         histograms = descriptor.get_gradient_histograms(image)  # [B, 8, H, W]
-        pooling = descriptor.bin_pooling_kernel.weight.to(image).expand(ANGLE_BINS, 1, SPATIAL_BIN, SPATIAL_BIN)
+        pooling = descriptor.bin_pooling_kernel.weight.detach().to(image).expand(ANGLE_BINS, 1, SPATIAL_BIN, SPATIAL_BIN)
         pooled = F.conv2d(histograms, pooling, stride=SPATIAL_BIN, groups=ANGLE_BINS)  # [B, 8, H / 4, W / 4]
-        raw = F.conv2d(pooled, descriptor.PoolingConv.weight.to(image), stride=CELL // SPATIAL_BIN, padding=1)
+        raw = F.conv2d(pooled, descriptor.PoolingConv.weight.detach().to(image), stride=CELL // SPATIAL_BIN, padding=1)
         clipped = _l2_normalised(raw).clamp(0.0, descriptor.clipval)
         return torch.sqrt(F.normalize(_l2_normalised(clipped), p=1, dim=1) + descriptor.eps)  # RootSIFT
 

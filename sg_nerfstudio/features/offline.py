@@ -17,13 +17,12 @@ Not invariant to: viewpoint changes beyond a cell, cast shadows and shading edge
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sg_nerfstudio.features.base import TeacherConfig, checked_grid, input_shape, resize_bilinear, resolve_device
+from sg_nerfstudio.features.base import CellDescriptor
 
 CELL = 8
 ORIENTATIONS = 12
@@ -34,38 +33,18 @@ VERSION = 2  # 2: aspect ratio kept
 TINY = 1e-10
 
 
-class OfflineTeacher:
+class OfflineTeacher(CellDescriptor):
     """image [H, W, 3] in [0, 1] -> [rows, columns, 36] oriented-gradient descriptor (long side: input_size / 8)."""
 
+    cell, default_input_size, cell_name = CELL, DEFAULT_INPUT_SIZE, "offline descriptor cell size"
     feature_dim = ORIENTATIONS * len(POOLING_CELLS)
-
-    def __init__(self, config: TeacherConfig):
-        self.input_size = config.input_size or DEFAULT_INPUT_SIZE
-        self.grid_size = checked_grid(self.input_size, CELL, "offline descriptor cell size")
-        self.device = resolve_device(config.device)
 
     def settings(self) -> dict:
         return {"teacher": "offline_hog", "version": VERSION, "input_size": self.input_size, "cell": CELL,
                 "orientations": ORIENTATIONS, "pooling_cells": list(POOLING_CELLS)}
 
-    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
-        rows, columns = input_shape(height, width, self.input_size, CELL)
-        return rows // CELL, columns // CELL
-
-    @torch.no_grad()
-    def extract(self, image: Tensor) -> Tensor:
-        return self.describe(image.to(self.device, torch.float32)).cpu()
-
-    def describe(self, image: Tensor, grid: Optional[tuple[int, int]] = None) -> Tensor:
-        """Differentiable `extract` on the image's device: [H, W, 3] -> [rows, columns, 36].
-
-        `grid` (rows, columns) forces the map's shape (the image is resized to grid * CELL pixels); by default
-        it is `grid_shape(H, W)`. Registration uses it to describe renders whose size differs from the photo's.
-        """
-        pixels = image.permute(2, 0, 1)[None]
-        rows, columns = grid or self.grid_shape(image.shape[0], image.shape[1])
-        size = (rows * CELL, columns * CELL)
-        pixels = resize_bilinear(pixels, size)
+    def describe_resized(self, pixels: Tensor) -> Tensor:
+        """[1, 3, 8 rows, 8 columns] -> [1, 36, rows, columns]."""
         log_channels = torch.log(pixels.clamp(min=0.0) + LOG_OFFSET).transpose(0, 1)  # [3, 1, S, S]
         gx, gy = _sobel(log_channels[:, 0])  # [3, S, S] each
         cells = _cell_orientation_histograms(gx, gy, CELL)[None]  # [1, B, rows, columns]
@@ -76,7 +55,7 @@ class OfflineTeacher:
             floor = 0.1 * norm.flatten().median().clamp(min=1e-6)
             blocks.append(pooled / torch.sqrt(norm**2 + floor**2))
         features = torch.cat(blocks, dim=1) / math.sqrt(len(POOLING_CELLS))
-        return features[0].permute(1, 2, 0)
+        return features
 
 
 def _sobel(channels: Tensor) -> tuple[Tensor, Tensor]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional, Protocol
@@ -58,7 +59,7 @@ class Teacher(Protocol):
         """`extract` with gradients, on the image's device; `grid` = (rows, columns) forces the map's shape."""
 
 
-class CellDescriptor:
+class CellDescriptor(ABC):
     """A weight-free teacher that describes every cell of `cell` x `cell` pixels of the image resized to
     `input_size` on its long side (aspect ratio kept). Subclasses set `cell`, `default_input_size`, `cell_name`
     and `feature_dim` and implement `describe_resized`."""
@@ -91,9 +92,9 @@ class CellDescriptor:
         pixels = resize_bilinear(image.permute(2, 0, 1)[None], (rows * self.cell, columns * self.cell))
         return self.describe_resized(pixels)[0].permute(1, 2, 0)
 
+    @abstractmethod
     def describe_resized(self, pixels: Tensor) -> Tensor:
         """[1, 3, rows * cell, columns * cell] in [0, 1] -> [1, feature_dim, rows, columns]."""
-        raise NotImplementedError
 
 
 def resolve_device(device: str) -> torch.device:

@@ -7,7 +7,7 @@
 Maps are cached on disk per image content and settings (`cache.py`).
 """
 
-from sg_nerfstudio.features.base import Teacher, TeacherConfig, TeacherInputError
+from sg_nerfstudio.features.base import CellDescriptor, Teacher, TeacherConfig, TeacherInputError
 from sg_nerfstudio.features.cache import FeatureCache, extract_all
 
 
@@ -17,26 +17,30 @@ def build_teacher(config: TeacherConfig) -> Teacher:
         from sg_nerfstudio.features.dinov2 import Dinov2Teacher
 
         return Dinov2Teacher(config)
-    if config.name == "offline":
-        from sg_nerfstudio.features.offline import OfflineTeacher
+    if config.name in ("offline", "dense-sift"):
+        return _cell_descriptor(config.name)(config)
+    raise TeacherInputError(f"Unknown teacher {config.name!r}; expected 'dinov2', 'offline' or 'dense-sift'.")
 
-        return OfflineTeacher(config)
-    if config.name == "dense-sift":
+
+def _cell_descriptor(name: str) -> type[CellDescriptor]:
+    """The class of a weight-free teacher (importing it loads no weights and no kornia)."""
+    if name == "dense-sift":
         from sg_nerfstudio.features.dense_sift import DenseSiftTeacher
 
-        return DenseSiftTeacher(config)
-    raise TeacherInputError(f"Unknown teacher {config.name!r}; expected 'dinov2', 'offline' or 'dense-sift'.")
+        return DenseSiftTeacher
+    from sg_nerfstudio.features.offline import OfflineTeacher
+
+    return OfflineTeacher
 
 
 def _teacher_constants(name: str) -> tuple[int, int, int, str]:
     """(feature dim, default input size, patch/cell pixels, what the cell is called) of a teacher, without loading it."""
-    from sg_nerfstudio.features import dense_sift, dinov2, offline
-
     if name == "dinov2":
+        from sg_nerfstudio.features import dinov2
+
         return dinov2.FEATURE_DIM, dinov2.DEFAULT_INPUT_SIZE, dinov2.PATCH_SIZE, "DINOv2 patch size"
-    if name == "dense-sift":
-        return dense_sift.DenseSiftTeacher.feature_dim, dense_sift.DEFAULT_INPUT_SIZE, dense_sift.CELL, "dense SIFT cell size"
-    return offline.OfflineTeacher.feature_dim, offline.DEFAULT_INPUT_SIZE, offline.CELL, "offline descriptor cell size"
+    kind = _cell_descriptor(name)
+    return kind.feature_dim, kind.default_input_size, kind.cell, kind.cell_name
 
 
 def teacher_feature_dim(config: TeacherConfig) -> int:

@@ -65,7 +65,7 @@ class RegistrationJob:
     config: Optional[str] = None
     """Registration preset: a name (paper, fast-cpu, fast-cpu-features) or a YAML file; the flags below override
     single values. Default by device: `paper` on CUDA (12000 steps); on a CPU `fast-cpu` for references trained
-    with the offline teacher, `fast-cpu-features` for DINOv2 ones."""
+    with a weight-free teacher (offline, dense-sift), `fast-cpu-features` for DINOv2 ones."""
     init: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """Initial transform meta -> reference world: 'identity' (the default), 'colmap' (photos registered into
     the reference COLMAP model, Sim(3) from their centres), 'generalized' (the meta-image as one

@@ -28,13 +28,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sg_nerfstudio.features.base import CellDescriptor, TeacherConfig, TeacherInputError
+from sg_nerfstudio.features.offline import LOG_OFFSET  # the same log input as the offline descriptor
 
 CELL = 8
 SPATIAL_BIN = 4
 SPATIAL_BINS = 4
 ANGLE_BINS = 8
 DEFAULT_INPUT_SIZE = 256
-LOG_OFFSET = 2.0 / 255.0
 VERSION = 1
 
 

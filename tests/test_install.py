@@ -44,5 +44,8 @@ def test_sg_demo_runs_from_a_non_editable_install_outside_the_repository(tmp_pat
     )
     assert demo.returncode == 0, demo.stdout[-3000:] + demo.stderr[-3000:]
     record = json.loads((elsewhere / "demo" / "registrations" / "front" / "transform.json").read_text())
-    assert record["steps"] == 100 and record["settings"]["objective"] == "teacher-on-render"  # the shipped fast-cpu preset
+    # the shipped fast-cpu preset; the tiny scene gives SIFT nothing to match, so the dense objective runs alone: 100 main
+    # steps and the 40-step dense-SIFT refine stage
+    assert record["steps"] == 140 and record["settings"]["objective"] == "teacher-on-render"
+    assert record["settings"]["refine_teacher"] == "dense-sift" and not record["settings"]["refine_anchored"]
     assert (elsewhere / "demo" / "registrations" / "front" / "metrics.json").is_file()

@@ -636,3 +636,36 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
     dense_only = register(reference, meta, start, replace(settings, keypoint_weight=0.0), keypoints=anchors)
     assert pose_errors(meta.poses, dense_only.transform, ground_truth).rotation_deg > 5.0
     assert dense_only.steps == optimize.total_steps(settings) == 30
+
+
+def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(reference, meta, ground_truth):
+    """`refine_steps` with a `refine_teacher`: after the main stage (its history unchanged) a stage with that teacher
+    runs from the main stage's result and lowers the refine teacher's objective there; the step count includes it;
+    `refine_anchored: false` leaves it out where keypoint anchors held the pose; with another main objective the refine
+    stage still describes renders with its teacher."""
+    from sg_nerfstudio.registration.objectives import PhotoLosses, refine_settings
+
+    base = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render")
+    settings = replace(base, refine_steps=15, refine_teacher="dense-sift", refine_lr=0.003)
+    start = perturbed_start(meta, ground_truth, 1, 3.0, 0.05, 0.05)
+    main_only = register(reference, meta, start, base)
+    refined = register(reference, meta, start, settings)
+    assert refined.steps == optimize.total_steps(settings) == 45
+    stages = [row["stage"] for row in refined.history]
+    assert stages == ["main"] * (30 * len(meta.photos)) + ["refine-dense-sift"] * (15 * len(meta.photos))
+    assert [row["loss"] for row in refined.history[: 30 * len(meta.photos)]] == [row["loss"] for row in main_only.history]
+
+    sift = refine_settings(settings)
+    objective = build_objective(reference, sift)
+    judge = PhotoLosses(reference, prepare_photos(reference, meta, sift, objective), objective, sift, refined.near_plane)
+    rule = TrimmingRule.of(settings)
+    at = lambda world: rule.trimmed_mean(optimize.objective_at(judge, reference.world_to_dataparser @ world))
+    assert at(refined.transform) < at(main_only.transform)
+
+    anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=2)
+    anchored = replace(settings, update_centre="look-at", keypoint_weight=1.0, refine_anchored=False)
+    assert optimize.total_steps(anchored, anchored=True) == 30 and optimize.total_steps(anchored) == 45
+    assert {row["stage"] for row in register(reference, meta, start, anchored, keypoints=anchors).history} == {"main"}
+    for objective in ("features", "photometric"):  # the refine teacher describes renders, whatever the main objective
+        own = refine_settings(replace(settings, objective=objective, teacher_input_size=64))
+        assert (own.objective, own.render_teacher, own.teacher_input_size) == ("teacher-on-render", "dense-sift", None)

@@ -138,6 +138,16 @@ def check_objective_settings(settings: RegistrationSettings) -> None:
         )
 
 
+def refine_settings(settings: RegistrationSettings) -> RegistrationSettings:
+    """The settings of the refine stage: the main stage's, or with a `refine_teacher` that descriptor applied to the
+    renders and the photos (teacher-on-render, whatever the main objective) at its default input size."""
+    if settings.refine_teacher is None:
+        return settings
+    same_teacher = settings.objective == "teacher-on-render" and settings.refine_teacher == settings.render_teacher
+    return replace(settings, objective="teacher-on-render", render_teacher=settings.refine_teacher,
+                   teacher_input_size=settings.teacher_input_size if same_teacher else None)
+
+
 def build_objective(reference: ReferenceModel, settings: RegistrationSettings) -> Objective:
     """The objective the settings name, with its teacher (`objective_teacher_config`)."""
     config = objective_teacher_config(reference, settings)

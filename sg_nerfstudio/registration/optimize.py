@@ -25,7 +25,7 @@ from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
 from sg_nerfstudio.features import teacher_input_size
 from sg_nerfstudio.registration.objectives import (
-    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos,
+    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos, refine_settings,
 )
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
@@ -164,7 +164,8 @@ def register(
     """Estimate the Sim(3) meta -> reference world starting from `initial_world`.
 
     Stages: the coarse-to-fine `pyramid` stages of the settings (if any; hypotheses around the start at the
-    coarsest), then the main stage at the settings' teacher size. `photos` and `objective` may come prepared
+    coarsest), then the main stage at the settings' teacher size, then the `refine_steps` stage (if any). The
+    verdict and the final losses are the main stage's objective (the one its thresholds were calibrated on). `photos` and `objective` may come prepared
     for the main stage (`prepare_photos`, `build_objective`: the teacher is built once). `on_step(step,
     transform)` is called after every step of every stage (`total_steps(settings, anchored)` in all) with the current
     estimate (meta -> world). `keypoints`: the photos' verified SIFT correspondences with the reference
@@ -187,7 +188,7 @@ def register(
 
     history = History([p.name for p in photos])
     report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
-    stages = coarse_stages(reference, meta, settings, near_plane) + [main]
+    stages = coarse_stages(reference, meta, settings, near_plane) + [main] + refine_stages(reference, meta, settings, near_plane, bool(anchor), main)
     current, step, hypotheses = initial_ns, 0, []
     if prealigned:
         current = anchor.prealign(current, update_centre(meta, current, settings), main.losses.objective.teacher.grid_size, settings.keypoint_prealign_steps)
@@ -207,7 +208,8 @@ def register(
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
-    timings = {key: sum(stage.losses.timings[key] for stage in stages) for key in main.losses.timings}
+    distinct = {id(stage.losses): stage.losses for stage in stages}.values()  # a refine stage may share the main stage's
+    timings = {key: sum(losses.timings[key] for losses in distinct) for key in main.losses.timings}
     timings["verdict"] = time.perf_counter() - probing  # the probes' renders (also counted in "render" and "loss")
     return RegistrationResult(
         transform=ns_to_world @ current,
@@ -260,7 +262,28 @@ def total_steps(settings: RegistrationSettings, anchored: bool = False) -> int:
     main = main_schedule(settings, prealigns(settings, anchored))[0]
     first = settings.pyramid_steps if settings.pyramid else main
     runs = min(settings.hypotheses + 1, max(1, settings.hypotheses_kept)) if settings.hypotheses else 1
-    return main + len(settings.pyramid) * settings.pyramid_steps + (runs - 1) * first
+    refine = settings.refine_steps if refines(settings, anchored) else 0
+    return main + len(settings.pyramid) * settings.pyramid_steps + (runs - 1) * first + refine
+
+
+def refines(settings: RegistrationSettings, anchored: bool) -> bool:
+    """Whether the refine stage runs: `refine_steps` > 0, and the meta-image has no keypoint anchors unless
+    `refine_anchored`."""
+    return settings.refine_steps > 0 and (settings.refine_anchored or not (anchored and settings.keypoint_weight > 0))
+
+
+def refine_stages(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings, near_plane: float, anchored: bool, main: Stage) -> list[Stage]:
+    """[] or the refine stage: `refine_settings` (its own teacher and photo targets unless it is the main stage's),
+    `refine_steps` from `refine_lr` decaying to `lr_final`."""
+    if not refines(settings, anchored):
+        return []
+    own = refine_settings(settings)
+    if own == settings:  # the main stage's objective: its photos and targets serve
+        losses = main.losses
+    else:
+        objective = build_objective(reference, own)
+        losses = PhotoLosses(reference, prepare_photos(reference, meta, own, objective), objective, own, near_plane)
+    return [Stage(f"refine-{objective_teacher_config(reference, own).name}", losses, settings.refine_steps, settings.refine_lr, settings.lr_final)]
 
 
 MIN_COARSE_GRID = 8

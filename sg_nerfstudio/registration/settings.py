@@ -113,6 +113,18 @@ class RegistrationSettings:
     where the dense objective needs neither the steps nor the learning rate that reach it from 5°); None: `steps`."""
     prealigned_lr: Optional[float] = None
     """Learning rate the main stage starts at after the keypoint pre-alignment (decaying to `lr_final`); None: `lr`."""
+    refine_steps: int = 0
+    """Steps of a last stage after the main one, from its result, with its own render teacher (`refine_teacher`);
+    its learning rate starts at `refine_lr` and decays to `lr_final`. The verdict and the final losses stay the main
+    stage's (the objective the verdict was calibrated on). 0 = no such stage (the paper)."""
+    refine_teacher: Optional[Literal["offline", "dense-sift"]] = None
+    """Weight-free descriptor the refine stage applies to the renders and the photos (teacher-on-render, whatever the
+    main objective; see `render_teacher`); None: the main stage's objective and teacher."""
+    refine_lr: float = 0.003
+    """Learning rate the refine stage starts at."""
+    refine_anchored: bool = True
+    """Whether the refine stage also runs where keypoint anchors held the pose (False: only for the dense objective
+    alone, where no SIFT correspondences were found)."""
     seed: int = 0
     backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
 

@@ -281,14 +281,14 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
     code, err = run_cli([
         "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
         "--init", str(init), "--gt", str(tiny_scene / "meta" / "front" / "gt_transform.json"),
-        "--steps", "12", "--images-per-step", "2", "--lr", "0.004",
+        "--steps", "12", "--images-per-step", "2", "--lr", "0.004", "--refine-steps", "3",
     ], capsys)
     assert code == 0, err
     result = out / "front"
     record = json.loads((result / "transform.json").read_text())
     assert {"matrix", "scale", "rotation_wxyz", "translation", "initial", "final_trimmed_loss", "steps", "wall_time_s", "settings", "verdict"} <= set(record)
     assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"] and "sharpness" in record["verdict_evidence"]
-    assert record["steps"] == 12 and record["settings"]["images_per_step"] == 2
+    assert record["steps"] == 12 + 3 and record["settings"]["images_per_step"] == 2
     np.testing.assert_allclose(record["initial"]["matrix"], start, atol=1e-9)
     aligned = pycolmap.Reconstruction(str(result / "aligned"))
     meta = load_meta_image(tiny_scene / "meta" / "front")
@@ -297,7 +297,8 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
         centre = aligned.find_image_with_name(photo.name).projection_center()
         np.testing.assert_allclose(centre, (matrix @ np.append(photo.centre, 1))[:3], atol=1e-6)
     rows = (result / "losses.csv").read_text().strip().splitlines()
-    assert rows[0] == "step,image,loss,kept,weight,stage" and len(rows) == 1 + 12 * 2
+    assert rows[0] == "step,image,loss,kept,weight,stage" and len(rows) == 1 + (12 + 3) * 2
+    assert [row.rsplit(",", 1)[1].split("-")[0] for row in rows[1:]] == ["main"] * 24 + ["refine"] * 6
     for name in ("loss_curve.png", "ignored_histogram.png"):
         assert cv2.imread(str(result / "report" / name)) is not None
     assert len(list((result / "report" / "comparisons").glob("*_before_after.png"))) >= 2
@@ -439,7 +440,9 @@ def test_several_meta_images_merge_into_one_model_in_the_reference_frame(referen
     second = moved_meta_image(first, tmp_path / "front_moved", Sim3.random(np.random.default_rng(3), 40.0, 2.0, 0.5))
     out = tmp_path / "out"
     metas = [first, second]
-    args = ["--load-config", str(reference_config), "--output-dir", str(out), "--steps", "5", "--lr", "0.001", "--merge-reference"]
+    # 5 small steps from the truth stay near it (on this 36-52 px, 60%-occluded scene the objective's own minimum is
+    # degrees away: fast-cpu from the truth ends 6.6° off), hence no refine stage either
+    args = ["--load-config", str(reference_config), "--output-dir", str(out), "--steps", "5", "--lr", "0.001", "--refine-steps", "0", "--merge-reference"]
     for meta_dir in metas:
         args += ["--meta-image", str(meta_dir), "--init", str(meta_dir / "gt_transform.json"), "--gt", str(meta_dir / "gt_transform.json")]
     code, err = run_cli(args, capsys)

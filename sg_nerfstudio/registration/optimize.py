@@ -165,8 +165,9 @@ def register(
 
     Stages: the coarse-to-fine `pyramid` stages of the settings (if any; hypotheses around the start at the
     coarsest), then the main stage at the settings' teacher size, then the `refine_steps` stage (if any). The
-    verdict and the final losses are the main stage's objective (the one its thresholds were calibrated on). `photos` and `objective` may come prepared
-    for the main stage (`prepare_photos`, `build_objective`: the teacher is built once). `on_step(step,
+    verdict and the final losses are the main stage's objective (the one its thresholds were calibrated on).
+    `photos` and `objective` may come prepared for the main stage (`prepare_photos`, `build_objective`: the
+    teacher is built once). `on_step(step,
     transform)` is called after every step of every stage (`total_steps(settings, anchored)` in all) with the current
     estimate (meta -> world). `keypoints`: the photos' verified SIFT correspondences with the reference
     (`Initialiser.keypoints`); with `settings.keypoint_weight > 0` every stage adds their reprojection term

@@ -23,7 +23,7 @@ from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration import optimize
 from sg_nerfstudio.registration.objectives import (
-    ObjectiveSettingsError, PhotoLosses, build_objective, prepare_photos, teacher_on_render_target,
+    ObjectiveSettingsError, PhotoLosses, build_objective, prepare_photos, refine_settings, teacher_on_render_target,
 )
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import load_reference
@@ -646,8 +646,6 @@ def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(refere
     runs from the main stage's result and lowers the refine teacher's objective there; the step count includes it;
     `refine_anchored: false` leaves it out where keypoint anchors held the pose; with another main objective the refine
     stage still describes renders with its teacher."""
-    from sg_nerfstudio.registration.objectives import PhotoLosses, refine_settings
-
     base = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render")
     settings = replace(base, refine_steps=15, refine_teacher="dense-sift", refine_lr=0.003)
     start = perturbed_start(meta, ground_truth, 1, 3.0, 0.05, 0.05)

@@ -37,7 +37,7 @@ def preset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def wide_preset(tmp_path_factory) -> Path:
-    values = yaml.safe_load(Path("configs/register/wide-cpu.yaml").read_text()) | {"steps": 3, "pyramid": [2], "pyramid_steps": 2, "hypotheses": 2, "hypotheses_kept": 2}
+    values = yaml.safe_load(Path("configs/register/wide-cpu.yaml").read_text()) | {"steps": 3, "pyramid": [2], "pyramid_steps": 2, "hypotheses": 2, "hypotheses_kept": 2, "refine_steps": 2}
     path = tmp_path_factory.mktemp("preset") / "wide-short.yaml"
     path.write_text(yaml.safe_dump(values))
     return path

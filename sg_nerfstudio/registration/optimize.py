@@ -243,9 +243,14 @@ class Stage:
     lr_final: Optional[float]
 
 
+def uses_anchors(settings: RegistrationSettings, anchored: bool) -> bool:
+    """Whether keypoint anchors hold the pose: the meta-image has them (`anchored`) and the settings weigh them."""
+    return anchored and settings.keypoint_weight > 0
+
+
 def prealigns(settings: RegistrationSettings, anchored: bool) -> bool:
-    """Whether the keypoint pre-alignment runs: there are keypoint anchors and the settings ask for it."""
-    return anchored and settings.keypoint_weight > 0 and settings.keypoint_prealign_steps > 0
+    """Whether the keypoint pre-alignment runs: keypoint anchors hold the pose and the settings ask for it."""
+    return uses_anchors(settings, anchored) and settings.keypoint_prealign_steps > 0
 
 
 def main_schedule(settings: RegistrationSettings, prealigned: bool) -> tuple[int, float]:
@@ -270,7 +275,7 @@ def total_steps(settings: RegistrationSettings, anchored: bool = False) -> int:
 def refines(settings: RegistrationSettings, anchored: bool) -> bool:
     """Whether the refine stage runs: `refine_steps` > 0, and the meta-image has no keypoint anchors unless
     `refine_anchored`."""
-    return settings.refine_steps > 0 and (settings.refine_anchored or not (anchored and settings.keypoint_weight > 0))
+    return settings.refine_steps > 0 and (settings.refine_anchored or not uses_anchors(settings, anchored))
 
 
 def refine_stages(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings, near_plane: float, anchored: bool, main: Stage) -> list[Stage]:
@@ -284,7 +289,7 @@ def refine_stages(reference: ReferenceModel, meta: MetaImage, settings: Registra
     else:
         objective = build_objective(reference, own)
         losses = PhotoLosses(reference, prepare_photos(reference, meta, own, objective), objective, own, near_plane)
-    return [Stage(f"refine-{objective_teacher_config(reference, own).name}", losses, settings.refine_steps, settings.refine_lr, settings.lr_final)]
+    return [Stage(f"refine-{losses.objective.teacher_config.name}", losses, settings.refine_steps, settings.refine_lr, settings.lr_final)]
 
 
 MIN_COARSE_GRID = 8

@@ -20,6 +20,7 @@ from sg_nerfstudio.features import TeacherConfig, build_teacher
 from sg_nerfstudio.geometry.frames import viewmat
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
+from sg_nerfstudio.registration.depth_agreement import PointPixels, log_depth_ratios, summarise
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration import optimize
 from sg_nerfstudio.registration.objectives import (
@@ -480,6 +481,45 @@ def test_verdict_rule_follows_its_evidence():
     assert descending.label == "uncertain" and "not converged" in descending.reasons[0]
 
 
+def test_depth_ratios_follow_the_scale_of_points_on_a_known_surface():
+    """A flat depth map at 4 units: points at camera depth 2 agree under scale 2, read -log(1.25) under scale 2.5;
+    points behind the camera, outside the render or where it is not covered are left out."""
+    K = np.array([[10.0, 0.0, 8.0], [0.0, 10.0, 6.0], [0.0, 0.0, 1.0]])
+    points = np.array([[0.0, 0.0, 2.0], [0.4, -0.2, 2.0], [0.0, 0.0, -2.0], [5.0, 0.0, 2.0], [-0.6, 0.5, 2.0]])
+    pixels = PointPixels.of(points, K, 16, 12)
+    assert pixels.columns.tolist() == [8, 10, 5] and pixels.rows.tolist() == [6, 5, 8]  # floor(K x / z)
+    depth, alpha = torch.full((12, 16), 4.0), torch.ones(12, 16)
+    alpha[8, 5] = 0.2  # the last point's pixel is barely covered
+    np.testing.assert_allclose(log_depth_ratios(depth, alpha, pixels, torch.tensor(np.log(2.0))).numpy(), [0.0, 0.0], atol=1e-12)
+    ratios = log_depth_ratios(depth, alpha, pixels, torch.tensor(np.log(2.5)))
+    np.testing.assert_allclose(ratios.numpy(), [-np.log(1.25)] * 2, atol=1e-12)
+    summary = summarise([ratios, ratios[:0]])
+    assert summary.points == 2 and summary.log_ratio == pytest.approx(-np.log(1.25)) and summary.agreeing == 0.0
+
+
+def test_depth_agreement_of_the_meta_image_follows_a_wrong_scale(reference, meta, ground_truth):
+    """The meta-image's own sparse points against the reference's rendered depth: scaling the truth about its
+    cameras (they stay, the points move) by 1.25 or 0.8 shifts the median log ratio by about -log of the factor.
+    (Its value at the truth is -0.20 on this 300-step reference, whose floaters sit in front of the surface; 0.01-0.03
+    on the 1500-step references of README "Depth agreement".)"""
+    settings = RegistrationSettings(**{**FAST, "objective": "teacher-on-render"})
+    objective = build_objective(reference, settings)
+    truth = reference.world_to_dataparser @ ground_truth
+    near_plane = optimize.effective_near_plane(meta, truth, settings.near_plane)
+    losses = PhotoLosses(reference, prepare_photos(reference, meta, settings, objective), objective, settings, near_plane)
+    indices = list(range(len(meta.photos)))
+
+    def agreement(factor: float):
+        transform = optimize.scaled_about_centroid(truth, meta, factor)
+        return summarise(losses.evaluate(transform.to_torch(), indices, with_depth=True)[2])
+
+    at_truth, larger, smaller = agreement(1.0), agreement(1.25), agreement(0.8)
+    assert min(at_truth.points, larger.points, smaller.points) > 1000
+    assert larger.log_ratio - at_truth.log_ratio == pytest.approx(-np.log(1.25), abs=0.08)
+    assert smaller.log_ratio - at_truth.log_ratio == pytest.approx(-np.log(0.8), abs=0.08)
+    assert larger.agreeing < at_truth.agreeing
+
+
 def facing_the_other_side(ground_truth: Sim3) -> Sim3:
     """The ground truth turned 180° about the vertical axis through the reference origin: the photos of one
     facade looking at the opposite one."""
@@ -493,6 +533,7 @@ def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(re
     assert pose_errors(meta.poses, wrong.transform, ground_truth).outlier()
     assert wrong.verdict.label != "registered", wrong.verdict
     assert right.verdict.label == "registered", right.verdict
+    assert right.verdict.evidence.depth_points > 0 and np.isfinite(right.verdict.evidence.depth_log_ratio)
 
 
 def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, ground_truth, monkeypatch):

@@ -183,6 +183,7 @@ class SceneRunner:
         poses = subject.poses
         if start is not None:
             record["before"] = summary(pose_errors(poses, start, meta.ground_truth))
+            record["start_transform"] = start.as_record()
             base = self.options.alternatives[spec.mode] if spec.mode else self.options.settings
             settings = replace(base, seed=seed, **spec.overrides)
             keypoints = self.keypoints(subject, settings)
@@ -193,6 +194,7 @@ class SceneRunner:
                 record["refine_failure"] = str(error)
             else:
                 record["after"] = summary(pose_errors(poses, result.transform, meta.ground_truth))
+                record["transform"] = result.transform.as_record()
                 record["refine_time_s"] = result.wall_time_s
                 record["verdict"], record["verdict_reasons"] = result.verdict.label, result.verdict.reasons
                 record["verdict_evidence"] = result.verdict.as_record()["evidence"]

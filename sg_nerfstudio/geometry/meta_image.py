@@ -36,14 +36,19 @@ class Photo:
         path: image file.
         camera: its pycolmap camera (any model, pixel convention: centre of the top-left pixel at 0.5).
         cam_from_world: [3, 4] world-to-camera (OpenCV) in the meta-image frame.
-        point_depths: [M] depths (camera z, meta units) of the sparse points it observes.
+        points_camera: [M, 3] the sparse points it observes, in its camera frame (OpenCV, meta units).
     """
 
     name: str
     path: Path
     camera: pycolmap.Camera
     cam_from_world: Array
-    point_depths: Array
+    points_camera: Array
+
+    @property
+    def point_depths(self) -> Array:
+        """[M] depths (camera z, meta units) of the sparse points it observes."""
+        return self.points_camera[:, 2]
 
     @property
     def centre(self) -> Array:
@@ -174,12 +179,9 @@ def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
         if not camera.is_perspective:
             raise MetaImageError(f"Photo {image.name} uses camera model {camera.model.name}; expected a perspective model.")
         pose = image.cam_from_world().matrix()
-        depths = np.array([
-            (pose[:, :3] @ reconstruction.points3D[p.point3D_id].xyz + pose[:, 3])[2]
-            for p in image.points2D if p.has_point3D()
-        ])
+        points = np.array([reconstruction.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()]).reshape(-1, 3)
         _check_size(images_dir / image.name, camera)
-        photos.append(Photo(image.name, images_dir / image.name, camera, pose, depths))
+        photos.append(Photo(image.name, images_dir / image.name, camera, pose, points @ pose[:, :3].T + pose[:, 3]))
     if len(photos) < min_photos:
         raise MetaImageError(
             f"Meta-image {directory} has {len(photos)} registered photos; at least {min_photos} are needed."

@@ -34,6 +34,7 @@ from sg_nerfstudio.features.base import resize_bilinear
 from sg_nerfstudio.geometry.frames import viewmat
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.registration.depth_agreement import PointPixels, log_depth_ratios
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import per_image_loss
 from sg_nerfstudio.registration.settings import RegistrationSettings
@@ -54,6 +55,7 @@ class PreparedPhoto:
     width: int
     height: int
     target: Tensor  # [rows, columns, D] teacher map or RGB on the teacher grid
+    points: PointPixels  # its sparse points' pixels in the render and depths (depth_agreement.py)
 
 
 class Objective(ABC):
@@ -72,9 +74,13 @@ class Objective(ABC):
     def targets(self, load: Loader, sizes: list[tuple[int, int]], label: str) -> list[Tensor]:
         """Per photo [rows, columns, D]; `sizes` are the (width, height) each photo renders at."""
 
-    def render(self, reference: ReferenceModel, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str) -> tuple[Tensor, Tensor]:
-        """[C, H, W, C'] maps and [C, H, W, 1] alphas of the cameras (dataparser frame)."""
-        return reference.render_rgb(viewmats, Ks, width, height, near_plane, backend)
+    def render(
+        self, reference: ReferenceModel, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str,
+        with_depth: bool = False,
+    ) -> tuple[Tensor, Tensor]:
+        """[C, H, W, C'] maps (with `with_depth`, the expected depth appended as one more channel) and
+        [C, H, W, 1] alphas of the cameras (dataparser frame)."""
+        return reference.render_rgb(viewmats, Ks, width, height, near_plane, backend, with_depth)
 
     def to_target_grid(self, rendered: Tensor, target: Tensor) -> Tensor:
         """[1, H, W, C'] render -> [1, rows, columns, D] comparable with the target [rows, columns, D]."""
@@ -87,8 +93,8 @@ class DecodedFeatures(Objective):
     def targets(self, load: Loader, sizes: list[tuple[int, int]], label: str) -> list[Tensor]:
         return extract_all(load, len(sizes), self.teacher, FeatureCache(self.teacher_config.cache_dir), f"Teacher features ({label})")
 
-    def render(self, reference, viewmats, Ks, width, height, near_plane, backend):
-        return reference.render_features(viewmats, Ks, width, height, near_plane, backend)
+    def render(self, reference, viewmats, Ks, width, height, near_plane, backend, with_depth=False):
+        return reference.render_features(viewmats, Ks, width, height, near_plane, backend, with_depth)
 
 
 class TeacherOnRender(Objective):
@@ -175,7 +181,10 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
     sizes = [render_size(p.camera.width, p.camera.height, settings, objective) for p in meta.photos]
     targets = objective.targets(load, sizes, meta.name)
     return [
-        PreparedPhoto(photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(photo.intrinsics_at(w, h)).float(), w, h, target.float())
+        PreparedPhoto(
+            photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(photo.intrinsics_at(w, h)).float(), w, h, target.float(),
+            PointPixels.of(photo.points_camera, photo.intrinsics_at(w, h), w, h),
+        )
         for photo, target, (w, h) in zip(meta.photos, targets, sizes)
     ]
 
@@ -224,15 +233,22 @@ class PhotoLosses:
 
     def __call__(self, meta_to_dataparser: Sim3, indices: list[int]) -> tuple[list[Tensor], Tensor]:
         """B scalar losses and [B] covered fractions of the photos `indices` under `meta_to_dataparser`
-        (a torch Sim3, float64).
+        (a torch Sim3, float64); `evaluate` without depth."""
+        losses, coverage, _ = self.evaluate(meta_to_dataparser, indices)
+        return losses, coverage
+
+    def evaluate(self, meta_to_dataparser: Sim3, indices: list[int], with_depth: bool = False) -> tuple[list[Tensor], Tensor, list[Tensor]]:
+        """B scalar losses, [B] covered fractions and (with `with_depth`, else []) B tensors [M_b] of the photos'
+        sparse points' log depth ratios (`depth_agreement.log_depth_ratios`) under `meta_to_dataparser`.
 
         Photos of one render size are rendered in one batch (one projection graph for all their cameras).
         The losses stay separate tensors so that a robust objective that ignores a photo never
-        backpropagates through its render."""
-        losses, coverage = [None] * len(indices), [None] * len(indices)
+        backpropagates through its render; with depth the expected depth is one more channel of that render."""
+        losses, coverage, ratios = [None] * len(indices), [None] * len(indices), [None] * len(indices)
         start = time.perf_counter()
         reference = self.visible.for_pose(meta_to_dataparser) if self.visible is not None else self.reference
         self.timings["render"] += time.perf_counter() - start
+        log_scale = torch.log(torch.as_tensor(meta_to_dataparser.scale, dtype=torch.float64)) if with_depth else None
         for size, positions in self.same_size_groups(indices, reference.count):
             start = time.perf_counter()
             photos = [self.photos[indices[position]] for position in positions]
@@ -240,15 +256,19 @@ class PhotoLosses:
             viewmats = torch.stack([viewmat(meta_to_dataparser.move_camera(photo.cam_from_meta)) for photo in photos]).float().to(device)
             rendered, alpha = self.objective.render(
                 reference, viewmats, torch.stack([photo.K for photo in photos]).to(device), size[0], size[1], self.near_plane, self.settings.backend,
+                with_depth,
             )
             middle = time.perf_counter()
             for position, photo, render, covered in zip(positions, photos, rendered.unbind(0), alpha.detach()):
+                if with_depth:
+                    render, depth = render[..., :-1], render[..., -1]
+                    ratios[position] = log_depth_ratios(depth.cpu(), covered[..., 0].cpu(), photo.points, log_scale)
                 on_grid = self.objective.to_target_grid(render[None], photo.target).to(photo.target.device)
                 losses[position] = per_image_loss(on_grid, photo.target[None], self.settings.loss)[0]
                 coverage[position] = covered.mean().cpu()
             self.timings["render"] += middle - start
             self.timings["loss"] += time.perf_counter() - middle
-        return losses, torch.stack(coverage)
+        return losses, torch.stack(coverage), ratios if with_depth else []
 
     def same_size_groups(self, indices: list[int], gaussians: int | None = None) -> list[tuple[tuple[int, int], list[int]]]:
         """Positions in `indices` grouped by the (width, height) their photos render at, in batches of at most

@@ -57,32 +57,37 @@ class ReferenceModel:
         )
 
     def render_rgb(
-        self, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str = "auto",
+        self, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str = "auto", with_depth: bool = False,
     ) -> tuple[Tensor, Tensor]:
         """Colours of C cameras (dataparser frame, OpenCV world-to-camera [C, 4, 4]) with gradients w.r.t. viewmats.
 
         Returns:
-            RGB in [0, 1] over the model's background [C, H, W, 3] and alphas [C, H, W, 1].
+            RGB in [0, 1] over the model's background [C, H, W, 3] (with `with_depth`, [C, H, W, 4]: the expected
+            depth, camera z in dataparser units, appended) and alphas [C, H, W, 1].
         """
-        rgb, alpha, _ = rasterize(
+        rendered, alpha, _ = rasterize(
             self.means, None, None, self.opacities, self.colors, viewmats, Ks, width, height,
             near_plane=near_plane, sh_degree=self.sh_degree if self.sh_degree > 0 else None, backend=backend,
-            covars=self.covars,
+            covars=self.covars, render_mode="RGB+ED" if with_depth else "RGB",
         )
-        return (rgb + (1.0 - alpha) * self.background.to(rgb.device)).clamp(0.0, 1.0), alpha
+        rgb = (rendered[..., :3] + (1.0 - alpha) * self.background.to(rendered.device)).clamp(0.0, 1.0)
+        return (torch.cat([rgb, rendered[..., 3:]], dim=-1) if with_depth else rgb), alpha
 
     def render_features(
-        self, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str = "auto",
+        self, viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float, backend: str = "auto", with_depth: bool = False,
     ) -> tuple[Tensor, Tensor]:
-        """Decoded teacher-space features [C, H, W, D] and alphas [C, H, W, 1] (as `render_rgb`)."""
+        """Decoded teacher-space features [C, H, W, D] (with `with_depth`, [C, H, W, D + 1]: the expected depth
+        appended) and alphas [C, H, W, 1] (as `render_rgb`)."""
         rendered, alpha, _ = rasterize(
             self.means, None, None, self.opacities, self.gaussian_features, viewmats, Ks, width, height,
-            near_plane=near_plane, backend=backend, covars=self.covars,
+            near_plane=near_plane, backend=backend, covars=self.covars, render_mode="RGB+ED" if with_depth else "RGB",
         )
+        features = rendered[..., :-1] if with_depth else rendered
         if self.feature_bias.numel():
-            return rendered + self.feature_bias, alpha
-        decoded = self.model.feature_decoder(rendered.permute(0, 3, 1, 2))
-        return decoded.permute(0, 2, 3, 1), alpha
+            decoded = features + self.feature_bias
+        else:
+            decoded = self.model.feature_decoder(features.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+        return (torch.cat([decoded, rendered[..., -1:]], dim=-1) if with_depth else decoded), alpha
 
 
 def load_reference(config_path: Path, device: str = "cpu") -> ReferenceModel:

@@ -18,6 +18,11 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
 - `keypoint_error_cells`, `keypoint_photos` (with keypoint anchors only, registration/keypoints.py): the median
   reprojection error of the anchors at the result, in teacher cells, and how many photos have anchors; reported,
   not used.
+- `depth_log_ratio`, `depth_agreeing`, `depth_points` (registration/depth_agreement.py): the median log ratio of
+  the reference's rendered depth to the meta-image's own sparse points' depth at the result, the share of
+  points within 10%, and how many the model covers; reported, not used: a wrong scale or depth shows there
+  (0.1 for 10%), but the inaccurate results of the benchmark were rotations that keep the depths (README
+  "Depth agreement").
 - `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
   for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
 
@@ -39,6 +44,7 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.registration.depth_agreement import summarise
 from sg_nerfstudio.registration.robust import TrimmingRule
 
 Array = np.ndarray
@@ -71,6 +77,9 @@ class Evidence:
     hypothesis_margin: Optional[float] = None
     keypoint_error_cells: Optional[float] = None
     keypoint_photos: Optional[int] = None
+    depth_log_ratio: Optional[float] = None
+    depth_agreeing: Optional[float] = None
+    depth_points: int = 0
 
     @property
     def agreeing_fraction(self) -> float:
@@ -135,11 +144,15 @@ def gather_evidence(
     photo_rise = np.median(probe_losses / np.maximum(final_losses, 1e-12)[None] - 1.0, axis=0)
     agreeing = (photo_rise >= PHOTO_RISE) & (coverage >= PHOTO_COVERAGE)
     initial = rule.trimmed_mean(initial_losses)
+    with torch.no_grad():
+        depth = summarise(losses.evaluate(start, indices, with_depth=True)[2])
     return Evidence(
         sharpness=float(np.median(rises)), flattest_rise=float(rises.min()), agreeing_photos=int(agreeing.sum()),
         photos=len(indices), median_coverage=float(np.median(coverage)), objective_drop=1.0 - final / max(initial, 1e-12),
         probe_rotation_deg=math.degrees(rotation), probe_translation=translation,
         per_photo_rise=[float(v) for v in photo_rise], per_photo_coverage=[float(v) for v in coverage],
+        depth_log_ratio=depth.log_ratio if depth.points else None, depth_agreeing=depth.agreeing if depth.points else None,
+        depth_points=depth.points,
     )
 
 

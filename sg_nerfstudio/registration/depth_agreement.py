@@ -16,12 +16,15 @@ facade) and depth only through the photos' magnification, so a registration can 
 while its renders still match. r measures that with no ground truth; the verdict reports it (`summarise`).
 Measured on the real-photo scenes (README "Depth agreement"): |median r| <= 0.03 at the ground truth, about
 0.1 for a 10% scale error. As a Cauchy term of the objective it was tried and not adopted (same section).
-Frames: points in each photo's OpenCV camera frame (meta units); renders in the dataparser frame.
+Frames: points in each photo's OpenCV camera frame (meta units); renders in the dataparser frame. Written here
+because it is a comparison of two of this project's own inputs (no library has it); the expected depth itself is the
+rasterizer's "RGB+ED" mode (gsplat's convention).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import numpy as np
 import torch
 from torch import Tensor

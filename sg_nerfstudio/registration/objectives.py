@@ -180,12 +180,13 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
 
     sizes = [render_size(p.camera.width, p.camera.height, settings, objective) for p in meta.photos]
     targets = objective.targets(load, sizes, meta.name)
+    Ks = [photo.intrinsics_at(w, h) for photo, (w, h) in zip(meta.photos, sizes)]
     return [
         PreparedPhoto(
-            photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(photo.intrinsics_at(w, h)).float(), w, h, target.float(),
-            PointPixels.of(photo.points_camera, photo.intrinsics_at(w, h), w, h),
+            photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(K).float(), w, h, target.float(),
+            PointPixels.of(photo.points_camera, K, w, h),
         )
-        for photo, target, (w, h) in zip(meta.photos, targets, sizes)
+        for photo, target, K, (w, h) in zip(meta.photos, targets, Ks, sizes)
     ]
 
 

@@ -22,6 +22,7 @@ from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
 from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
 from sg_nerfstudio.features import teacher_input_size
 from sg_nerfstudio.registration.objectives import (
@@ -142,13 +143,13 @@ def robust_step(
     return values, kept, weights
 
 
-def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: RegistrationSettings) -> tuple[Array, Array, float]:
-    """[P] losses and [P] coverage at the final transform, and the losses' trimmed mean (those the robust rule
-    counts)."""
+def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: RegistrationSettings) -> tuple[Array, Array, float, DepthAgreement]:
+    """[P] losses and [P] coverage at the final transform, the losses' trimmed mean (those the robust rule
+    counts) and the depth agreement of the photos' sparse points there (one render for all)."""
     with torch.no_grad():
-        values, coverage = losses(final_ns.to_torch(), list(range(len(losses.photos))))
+        values, coverage, ratios = losses.evaluate(final_ns.to_torch(), list(range(len(losses.photos))), with_depth=True)
     final = torch.stack(values).double().numpy()
-    return final, coverage.double().numpy(), TrimmingRule.of(settings).trimmed_mean(final)
+    return final, coverage.double().numpy(), TrimmingRule.of(settings).trimmed_mean(final), summarise(ratios)
 
 
 def register(
@@ -200,9 +201,9 @@ def register(
             seed = initial_losses if stage is main and index == 0 and current is initial_ns else None  # the start's losses, if still the start
             current, step = optimise_stage(stage, meta, current, settings, history, step, report, seed, anchor)
 
-    final_losses, final_coverage, trimmed = final_evaluation(main.losses, current, settings)
+    final_losses, final_coverage, trimmed, depth = final_evaluation(main.losses, current, settings)
     probing = time.perf_counter()
-    evidence = gather_evidence(main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings))
+    evidence = gather_evidence(main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth)
     final_anchors = anchor.term(main.losses.objective.teacher.grid_size, 1.0)
     if final_anchors is not None:
         evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos

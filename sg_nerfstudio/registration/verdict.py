@@ -44,7 +44,7 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.registration.depth_agreement import summarise
+from sg_nerfstudio.registration.depth_agreement import DepthAgreement
 from sg_nerfstudio.registration.robust import TrimmingRule
 
 Array = np.ndarray
@@ -122,6 +122,7 @@ def probes(rotation: float, translation: float) -> list[Tensor]:
 
 def gather_evidence(
     losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, coverage: Array, initial_losses: Array, rule: TrimmingRule,
+    depth: Optional[DepthAgreement] = None,
 ) -> Evidence:
     """Render the probes around `final_ns` (meta -> dataparser) and measure the evidence.
 
@@ -130,6 +131,7 @@ def gather_evidence(
         final_losses, initial_losses: [P] per-photo losses at the result and at the start.
         coverage: [P] fraction of each photo's render the model covers at the result.
         rule: the registration's robust rule (the objective T is its trimmed mean).
+        depth: the depth agreement at the result (`depth_agreement.summarise`), reported as it is; None: not measured.
     """
     indices = list(range(len(losses.photos)))
     rotation, translation = probe_sizes(meta, losses.photos, losses.objective.teacher.grid_size, final_ns)
@@ -144,15 +146,13 @@ def gather_evidence(
     photo_rise = np.median(probe_losses / np.maximum(final_losses, 1e-12)[None] - 1.0, axis=0)
     agreeing = (photo_rise >= PHOTO_RISE) & (coverage >= PHOTO_COVERAGE)
     initial = rule.trimmed_mean(initial_losses)
-    with torch.no_grad():
-        depth = summarise(losses.evaluate(start, indices, with_depth=True)[2])
     return Evidence(
         sharpness=float(np.median(rises)), flattest_rise=float(rises.min()), agreeing_photos=int(agreeing.sum()),
         photos=len(indices), median_coverage=float(np.median(coverage)), objective_drop=1.0 - final / max(initial, 1e-12),
         probe_rotation_deg=math.degrees(rotation), probe_translation=translation,
         per_photo_rise=[float(v) for v in photo_rise], per_photo_coverage=[float(v) for v in coverage],
-        depth_log_ratio=depth.log_ratio if depth.points else None, depth_agreeing=depth.agreeing if depth.points else None,
-        depth_points=depth.points,
+        depth_log_ratio=depth.log_ratio if depth and depth.points else None,
+        depth_agreeing=depth.agreeing if depth and depth.points else None, depth_points=depth.points if depth else 0,
     )
 
 

@@ -11,7 +11,7 @@ from nerfstudio.utils.eval_utils import eval_setup
 
 from sg_nerfstudio.splat.datamanager import DatasetInputError
 from sg_nerfstudio.features import TeacherConfig, TeacherInputError
-from sg_nerfstudio.splat.method import short_cpu_schedule
+from sg_nerfstudio.splat.method import SPARSE_VIEWS, short_cpu_schedule
 from sg_nerfstudio.splat.training import cpu_config
 from conftest import make_config
 
@@ -27,6 +27,7 @@ def test_short_cpu_schedule_densifies_within_the_run(tmp_path, steps, warmup, st
     model = config.pipeline.model
     assert (model.warmup_length, model.stop_split_at, model.resolution_schedule) == (warmup, stop, steps // 6)
     assert model.warmup_length < model.stop_split_at <= steps
+    assert model.densify and model.densify_min_views == SPARSE_VIEWS
 
 
 def test_cpu_method_is_registered_with_the_demo_schedule():
@@ -74,6 +75,21 @@ def test_densification_changes_count_and_keeps_tensors_aligned(trained):
     for name, param in model.gauss_params.items():
         state = optimizers[name].state[optimizers[name].param_groups[0]["params"][0]]
         assert state["exp_avg"].shape == param.shape
+
+
+@pytest.mark.parametrize("densify, min_views, grows", [(True, 0, True), (False, 0, False), (True, 1000, False)])
+def test_densification_can_be_switched_off_or_limited_to_many_views(tiny_scene, tmp_path, densify, min_views, grows):
+    """`densify False`, or fewer training views than `densify_min_views` (the tiny scene has 14), keep the count
+    of Gaussians through the first refinement step of the test schedule (step 120), where the default changes it."""
+    from sg_nerfstudio.splat.training import train
+
+    torch.manual_seed(0)
+    config = make_config(tiny_scene / "reference", tmp_path, 125, TeacherConfig(name="offline", input_size=128, cache_dir=tmp_path / "cache"))
+    config.pipeline.model.densify, config.pipeline.model.densify_min_views = densify, min_views
+    counts = []
+    trainer = train(config, lambda step, trainer, losses: counts.append(trainer.pipeline.model.num_points))
+    assert trainer.pipeline.model.densifies == grows
+    assert (len(set(counts)) > 1) == grows, counts[::20]
 
 
 def test_checkpoint_round_trip_renders_identically(trained):

@@ -143,7 +143,8 @@ def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Ca
     trainer = train(config, lambda step, *_: on_step(step))
     path = save(trainer, config)
     elapsed = time.perf_counter() - started
-    write_json_atomically(marker, {"config": str(path), "train_s": elapsed, "steps": steps})
+    model = trainer.pipeline.model
+    write_json_atomically(marker, {"config": str(path), "train_s": elapsed, "steps": steps, "gaussians": model.num_points, "densified": model.densifies})
     return path, elapsed
 
 

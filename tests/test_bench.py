@@ -75,6 +75,7 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
             assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"]
         if record["run"].startswith("noise-"):  # rotation with translation and scale in proportion
             assert record["before"]["dR"] == pytest.approx(float(record["label"]), abs=1e-6) and record["before"]["dT"] > 0
+    assert {r["preset"] for r in records} == {preset.stem, wide_preset.stem}
     by_name = {(r["scene"], r["meta"], r["run"]): r for r in records}
     for (scene, meta, run), record in by_name.items():
         if run.endswith("@wide-short"):  # the compared preset starts where the main one does
@@ -115,6 +116,21 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
     assert sorted(fractions) == ["front", "rear"] and all(len(photos) == 4 for photos in fractions.values())
     rows = photo_ratios(scene, trained_reference(output, scene.name)[0], load_preset(str(preset)), [0.0, 5.0], seed=0)
     assert len(rows) == 2 * 8 and all(np.isfinite(row["losses"]).all() and row["losses"].min() > 0 for row in rows)
+
+
+def test_noise_table_names_the_preset_each_run_was_made_with():
+    """Runs an earlier invocation made with another `--config` keep their preset's name in a later report."""
+    from sg_nerfstudio.bench.report import noise_table
+
+    def record(preset, dR):
+        return {"family": "noise", "label": "30", "mode": "", "preset": preset, "refine_time_s": 10.0,
+                "after": {"dR": dR, "dT": 0.01, "accurate": dR < 5, "outlier": dR > 10}}
+
+    rows = noise_table([record("wide-cpu", 1.0), record("wide-cpu", 3.0), record("fast-cpu", 20.0), {**record("", 2.0), "preset": None}], "fast-cpu")
+    assert rows[2:] == [
+        "| 30, 0.50, 30% | fast-cpu | 2 | 50 | 11.00 / 11.00 | 0.010 / 0.010 | 10 |",
+        "| 30, 0.50, 30% | wide-cpu | 2 | 100 | 2.00 / 2.00 | 0.010 / 0.010 | 10 |",
+    ]
 
 
 def test_photo_loss_separation_is_the_auc_of_the_ratios():

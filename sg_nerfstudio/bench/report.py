@@ -22,7 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 MTA_THRESHOLDS = ((3, 0.1), (7, 0.1), (10, 0.1), (5, 0.09), (5, 0.15), (5, 0.2))
 OUTLIER_THRESHOLDS = ((10, 0.3), (10, 0.4), (10, 0.6), (15, 0.5), (17, 0.5), (20, 0.5))
 """The supplement's threshold sweeps (degrees, scene units)."""
-CSV_COLUMNS = ("scene", "meta", "photos", "run", "family", "label", "init_failure", "refine_failure",
+CSV_COLUMNS = ("scene", "meta", "photos", "run", "family", "label", "preset", "init_failure", "refine_failure",
                "dR_before", "dT_before", "dR_after", "dT_after", "init_time_s", "refine_time_s")
 
 
@@ -34,6 +34,7 @@ def write_csv(path: Path, records: list[dict]) -> None:
             before, after = r["before"] or {}, r["after"] or {}
             writer.writerow({
                 **{k: r[k] for k in ("scene", "meta", "photos", "run", "family", "label", "init_failure", "refine_failure")},
+                "preset": r.get("preset", ""),
                 "dR_before": before.get("dR"), "dT_before": before.get("dT"), "dR_after": after.get("dR"), "dT_after": after.get("dT"),
                 "init_time_s": round(r["init_time_s"], 2), "refine_time_s": round(r["refine_time_s"], 2),
             })
@@ -144,11 +145,14 @@ def ablation_table(records: list[dict]) -> list[str]:
 
 
 def noise_table(records: list[dict], preset: str) -> list[str]:
-    """Per noise level and preset: MTA, mean and median ΔR / ΔT after, mean wall time (the noise runs' starts)."""
+    """Per noise level and preset: MTA, mean and median ΔR / ΔT after, mean wall time (the noise runs' starts).
+
+    A run's preset is the one its record names (runs an earlier invocation made with another `--config` keep
+    their name); records written before presets were recorded count as `preset`, this invocation's."""
     groups: dict[tuple[float, str], list[dict]] = defaultdict(list)
     for r in records:
         if r["family"] == "noise":
-            groups[(float(r["label"]), r.get("mode") or preset)].append(r)
+            groups[(float(r["label"]), r.get("mode") or r.get("preset") or preset)].append(r)
     if not groups:
         return []
     lines = ["| start (°, ΔT, scale) | preset | runs | MTA (%) | ΔR (°) mean / median | ΔT mean / median | mean s |", "|---|---|---|---|---|---|---|"]

@@ -73,6 +73,8 @@ class BenchOptions:
     noise_samples: int = 1
     alternatives: dict[str, RegistrationSettings] = field(default_factory=dict)
     """Other presets (name -> settings) the noise runs are repeated with."""
+    preset: str = "fast-cpu"
+    """Name of `settings` (the `--config` preset), recorded in every run it refines."""
 
 
 @dataclass
@@ -179,7 +181,8 @@ class SceneRunner:
         record = {
             "scene": self.scene.name, "meta": meta.name, "photos": len(subject.photos), "run": spec.name, "family": spec.family,
             "start": spec.start, "label": spec.label, "init_failure": failure, "init_time_s": time.perf_counter() - started,
-            "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0, "mode": spec.mode, "verdict": None,
+            "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0, "mode": spec.mode,
+            "preset": spec.mode or self.options.preset, "verdict": None,
         }
         poses = subject.poses
         if start is not None:

@@ -83,6 +83,7 @@ def run(args: BenchArgs, console: Console) -> Path:
         settings=load_preset(args.config), train_steps=args.train_steps, initialisers=args.initialisers,
         ablations=args.ablations, noise_levels=args.noise_levels, sizes=args.sizes, size_samples=args.size_samples, seed=args.seed,
         noise_samples=args.noise_samples, alternatives={Path(name).stem: load_preset(name) for name in args.compare_config},
+        preset=Path(args.config).stem,
     )
     args.output.mkdir(parents=True, exist_ok=True)
     train_seconds = {}

@@ -227,10 +227,11 @@ class FeatureSplatfactoModel(SplatfactoModel):
         if backend != "gsplat" and self.strategy.absgrad:
             self.strategy.absgrad = False
             self.strategy.grow_grad2d = self.config.densify_grad_thresh_without_absgrad
-            CONSOLE.print(
-                "[yellow]CPU rasterizer: densifying on means2d gradients (threshold "
-                f"{self.config.densify_grad_thresh_without_absgrad}) since absgrad needs gsplat's CUDA backward.[/yellow]"
-            )
+            if self.densifies:
+                CONSOLE.print(
+                    "[yellow]CPU rasterizer: densifying on means2d gradients (threshold "
+                    f"{self.config.densify_grad_thresh_without_absgrad}) since absgrad needs gsplat's CUDA backward.[/yellow]"
+                )
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:
         """Render rgb, depth, accumulation and the raw feature map `feature_render` [H, W, feature_dim]."""

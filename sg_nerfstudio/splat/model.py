@@ -123,11 +123,6 @@ class FeatureSplatfactoModel(SplatfactoModel):
             )
         self.densifies = self.config.densify and self.num_train_data >= self.config.densify_min_views
         """Whether the strategy grows and prunes Gaussians in this run (`densify`, `densify_min_views`)."""
-        if self.config.densify and not self.densifies:
-            CONSOLE.print(
-                f"[yellow]{self.num_train_data} training views (< densify_min_views {self.config.densify_min_views}): "
-                "the Gaussians stay those the model starts with (no densification).[/yellow]"
-            )
         self.strategy = DefaultStrategy(
             prune_opa=self.config.cull_alpha_thresh,
             grow_grad2d=self.config.densify_grad_thresh,
@@ -206,6 +201,15 @@ class FeatureSplatfactoModel(SplatfactoModel):
         groups = super().get_gaussian_param_groups()
         groups["features"] = [self.gauss_params["features"]]
         return groups
+
+    def get_training_callbacks(self, training_callback_attributes):
+        """splatfacto's callbacks; says when the views are too few to densify (at training only, not at every load)."""
+        if self.config.densify and not self.densifies:
+            CONSOLE.print(
+                f"[yellow]{self.num_train_data} training views (< densify_min_views {self.config.densify_min_views}): "
+                "the Gaussians stay those the model starts with (no densification).[/yellow]"
+            )
+        return super().get_training_callbacks(training_callback_attributes)
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = super().get_param_groups()

@@ -7,7 +7,9 @@ from pathlib import Path
 import torch
 
 from sg_nerfstudio.registration.level_of_detail import coarsen, footprint_cells, merge, plan_merge
+from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.reference import ReferenceModel
+from sg_nerfstudio.registration.visibility import MAX_VOXEL_DOUBLINGS, CullingCamera, VisibleSubset
 from sg_nerfstudio.render import rasterize
 from sg_nerfstudio.render.projection import cull_gaussians
 
@@ -100,3 +102,18 @@ def test_cells_follow_the_nearest_camera_that_sees_the_gaussian():
     cells = footprint_cells(depths, torch.tensor([100.0, 50.0]), seen, pixels=2.0)
     torch.testing.assert_close(cells[:2], torch.tensor([0.04, 0.08]))
     assert torch.isinf(cells[2])
+
+
+def test_a_render_budget_coarsens_only_models_that_exceed_it():
+    model = textured_plane(30_000, seed=0)
+    viewmats, Ks, width, height = camera()
+    cameras = [CullingCamera(viewmats[0, :3].double(), Ks[0], width, height)]
+    one_pixel = VisibleSubset(model, cameras, level_of_detail=1.0).for_pose(Sim3.identity())
+    within = VisibleSubset(model, cameras, level_of_detail=1.0, render_budget=one_pixel.count)
+    assert within.for_pose(Sim3.identity()).count == one_pixel.count and within.voxel_pixels == 1.0
+    over = VisibleSubset(model, cameras, level_of_detail=1.0, render_budget=one_pixel.count // 2)
+    coarser = over.for_pose(Sim3.identity())
+    assert over.voxel_pixels in (2.0, 4.0) and coarser.count <= one_pixel.count // 2
+    # A budget no voxel can meet stops at the largest voxel allowed rather than merging the model away.
+    tiny = VisibleSubset(model, cameras, level_of_detail=1.0, render_budget=1)
+    assert tiny.for_pose(Sim3.identity()).count > 1 and tiny.voxel_pixels == 2.0**MAX_VOXEL_DOUBLINGS

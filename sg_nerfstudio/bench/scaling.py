@@ -14,7 +14,8 @@ Per size, in a fresh process each (so that peak memory is that size's alone), fo
 `--level-of-detail 0`, autograd projection) and the new path (the preset's `level_of_detail` and the compiled
 frozen-model kernels):
 - load: `load_reference` of the densified checkpoint (s);
-- prepare: the first cull (and merge) around the start (s) and the Gaussians a step then renders;
+- prepare: the first cull (and merge) around the start (s), the Gaussians a step then renders and the voxel
+  (render pixels) they were merged at (the level of detail, doubled where the render budget asks for it);
 - step: median wall time of `--steps` forward renders of every photo + the pose-only backward;
 - peak resident memory of the process (ru_maxrss);
 - with `--register`: a whole registration (the preset's steps, 5° / 0.1 / 10% start, verdict included) on
@@ -66,6 +67,8 @@ class Args:
     """Registration preset (name or YAML)."""
     level_of_detail: Optional[float] = None
     """The new path's level of detail in render pixels (default: the preset's)."""
+    render_budget: Optional[int] = None
+    """The new path's render budget in Gaussians (default: the preset's; 0: none)."""
     steps: int = 5
     """Timed steps per size and path (the first, which builds the cull, is not among them)."""
     register: bool = True
@@ -88,6 +91,8 @@ class ChildArgs:
     meta_image: Path
     config: str = "fast-cpu"
     level_of_detail: Optional[float] = None
+    """None: the preset's."""
+    render_budget: Optional[int] = None
     """None: the preset's."""
     frozen_kernels: bool = True
     steps: int = 5
@@ -149,6 +154,8 @@ def measure(args: ChildArgs) -> dict:
     settings = replace(load_preset(args.config), seed=args.seed)
     if args.level_of_detail is not None:
         settings = replace(settings, level_of_detail=args.level_of_detail)
+    if args.render_budget is not None:
+        settings = replace(settings, render_budget=args.render_budget)
     started = time.perf_counter()
     reference = load_reference(args.load_config, device=args.device)
     loaded = time.perf_counter() - started
@@ -178,6 +185,7 @@ def measure(args: ChildArgs) -> dict:
     times = [step() for _ in range(args.steps)]
     record = {
         "gaussians": reference.count, "rendered": losses.visible.subset.count, "level_of_detail": settings.level_of_detail,
+        "render_budget": settings.render_budget, "voxel_pixels": losses.visible.voxel_pixels,
         "frozen_kernels": args.frozen_kernels,
         "threads": threads, "load_s": loaded, "prepare_s": prepared, "step_s": statistics.median(times),
         "photos": len(photos), "render_size": [photos[0].width, photos[0].height],
@@ -205,6 +213,7 @@ def run_child(child: ChildArgs, wait: bool = True):
     command += ["--register"] if child.register else ["--no-register"]
     command += ["--threads", str(child.threads)] if child.threads else []
     command += ["--level-of-detail", str(child.level_of_detail)] if child.level_of_detail is not None else []
+    command += ["--render-budget", str(child.render_budget)] if child.render_budget is not None else []
     process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
     return read_record(process) if wait else process
 
@@ -225,7 +234,8 @@ def growth(args: Args, work: Path, console: Console) -> list[dict]:
         for mode, (level, kernels) in MODES.items():
             level = args.level_of_detail if level is None else level
             whole = args.register and (mode == "new" or not size)  # today's path registers 1M Gaussians in hours
-            child = ChildArgs(config, args.meta_image, args.config, level, kernels, args.steps, whole, args.device, args.threads, args.seed)
+            budget = args.render_budget if mode == "new" else None
+            child = ChildArgs(config, args.meta_image, args.config, level, budget, kernels, args.steps, whole, args.device, args.threads, args.seed)
             record = {"size": size, "mode": mode, **run_child(child)}
             console.print(record)
             rows.append(record)
@@ -236,7 +246,7 @@ def growth(args: Args, work: Path, console: Console) -> list[dict]:
 
 def growth_table(rows: list[dict], console: Console) -> None:
     table = Table(title="Cost per step against the reference's size (ratios: to today's path at the same size / to the smallest densified size)")
-    for column in ("Gaussians", "path", "LOD px", "rendered", "load s", "prepare s", "step s", "vs today", "vs smallest", "peak GB", "register s", "ΔR° / ΔT", "verdict"):
+    for column in ("Gaussians", "path", "voxel px (LOD / budget)", "rendered", "load s", "prepare s", "step s", "vs today", "vs smallest", "peak GB", "register s", "ΔR° / ΔT", "verdict"):
         table.add_column(column, justify="right")
     today = {row["size"]: row["step_s"] for row in rows if row["mode"] == "today"}
     smallest_size = min(r["size"] for r in rows if r["size"]) if any(r["size"] for r in rows) else 0
@@ -244,7 +254,7 @@ def growth_table(rows: list[dict], console: Console) -> None:
     for row in rows:
         registered = "register_s" in row
         table.add_row(
-            f"{row['gaussians']:,}", row["mode"], f"{row['level_of_detail']:g}", f"{row['rendered']:,}", f"{row['load_s']:.1f}", f"{row['prepare_s']:.2f}",
+            f"{row['gaussians']:,}", row["mode"], voxel_label(row), f"{row['rendered']:,}", f"{row['load_s']:.1f}", f"{row['prepare_s']:.2f}",
             f"{row['step_s']:.3f}", f"{row['step_s'] / today[row['size']]:.2f}", f"{row['step_s'] / smallest[row['mode']]:.2f}",
             f"{row['peak_rss_gb']:.1f}", f"{row['register_s']:.1f}" if registered else "-",
             f"{row['dR']:.2f} / {row['dT']:.3f}" if registered else "-", row.get("verdict", "-"),
@@ -252,9 +262,17 @@ def growth_table(rows: list[dict], console: Console) -> None:
     console.print(table)
 
 
+def voxel_label(row: dict) -> str:
+    """The voxel a row's render merged at, with the preset's level of detail and render budget behind it."""
+    if not row["level_of_detail"]:
+        return "off"
+    budget = f"{row['render_budget'] / 1000:g}k" if row.get("render_budget") else "none"
+    return f"{row.get('voxel_pixels', row['level_of_detail']):g} ({row['level_of_detail']:g} / {budget})"
+
+
 def concurrency(args: Args, console: Console) -> dict:
     """The base model's registration alone, then two at once (each with the default threads)."""
-    child = ChildArgs(args.load_config, args.meta_image, args.config, args.level_of_detail, True, 1, True, args.device, args.threads, args.seed)
+    child = ChildArgs(args.load_config, args.meta_image, args.config, args.level_of_detail, args.render_budget, True, 1, True, args.device, args.threads, args.seed)
     solo = run_child(child)
     pair = [run_child(child, wait=False) for _ in range(2)]
     together = [read_record(process) for process in pair]

@@ -221,7 +221,8 @@ class PhotoLosses:
 
     With `cull` (the default) the model is first restricted to what the photos can see around the pose
     (`visibility.VisibleSubset`: the same renders, at a cost that follows the visible Gaussians) and, with
-    `settings.level_of_detail`, coarsened to the render's pixels (`level_of_detail`)."""
+    `settings.level_of_detail`, coarsened to the render's pixels (`level_of_detail`; coarser beyond
+    `settings.render_budget` Gaussians)."""
 
     def __init__(
         self, reference: ReferenceModel, photos: list[PreparedPhoto], objective: Objective, settings: RegistrationSettings,
@@ -229,7 +230,7 @@ class PhotoLosses:
     ):
         self.reference, self.photos, self.objective, self.settings, self.near_plane = reference, photos, objective, settings, near_plane
         cameras = [CullingCamera(p.cam_from_meta, p.K, p.width, p.height) for p in photos]
-        self.visible = VisibleSubset(reference, cameras, settings.level_of_detail) if cull else None
+        self.visible = VisibleSubset(reference, cameras, settings.level_of_detail, settings.render_budget) if cull else None
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
 
     def __call__(self, meta_to_dataparser: Sim3, indices: list[int]) -> tuple[list[Tensor], Tensor]:

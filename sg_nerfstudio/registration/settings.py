@@ -94,7 +94,13 @@ class RegistrationSettings:
     at the nearest photo that sees them (registration/level_of_detail.py: the cost of a step follows the
     pixels, not the model's size); 0 renders every Gaussian as trained. 2 suits references of several hundred
     thousand Gaussians or more (from 100k to 1M Gaussians a step grew 2.2x at 2, 4.5x at 1) at a little detail: on the
-    default scene the dense objective alone ended further from the truth at 2 on one of two meta-images."""
+    default scene the dense objective alone ended further from the truth at 2 on one of two meta-images; that is
+    what `render_budget` does for large references only."""
+    render_budget: int = 400_000
+    """With `level_of_detail`: where the merged model still holds more Gaussians than this, the voxel doubles
+    (at most twice: 4x `level_of_detail`) until it fits, so that the cost of a step is bounded whatever the
+    reference's size (registration/visibility.py); 0 (or less): no budget. Models that fit are rendered exactly as at
+    `level_of_detail` (every CPU reference this project trains: tens of thousands of Gaussians)."""
     update_centre: Literal["cameras", "look-at"] = "cameras"
     """Point the update delta rotates and scales about: the centroid of the meta-image's cameras (DESIGN.md, the
     paper) or the point the photos look at (`MetaImage.look_at_under`). About the cameras, a rotation moves the

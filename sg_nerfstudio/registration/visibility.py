@@ -14,7 +14,11 @@ a 3% shift of the camera gives (under 2°). `tests/test_register.py` checks rend
 
 With `level_of_detail` (render pixels, > 0) the culled model is also coarsened for the photos' render size at
 the cull pose (`level_of_detail.coarsen`: Gaussians far below a pixel merged per voxel), so that the cost of a
-step follows the pixels the photos render rather than the size of the reference.
+step follows the pixels the photos render rather than the size of the reference. With a `render_budget`, a
+coarsened model that still holds more Gaussians than the budget is merged again with voxels twice as large
+(up to `MAX_VOXEL_DOUBLINGS` times): a reference of millions of Gaussians, whose trained Gaussians are each
+about one render pixel and so rarely share a one-pixel voxel, is then rendered at a bounded cost per step,
+while a model within the budget renders exactly as at `level_of_detail`.
 """
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ MAX_ROTATION_DEG = 4.0
 MAX_SHIFT = 0.03
 """Re-cull once the pose has rotated by more than MAX_ROTATION_DEG, or a camera centre has moved by more than
 MAX_SHIFT times its photo's median Gaussian depth, since the last cull."""
+MAX_VOXEL_DOUBLINGS = 2
+"""The render budget may at most quadruple the voxel of `level_of_detail`: fast-cpu renders at 4x its teacher's grid,
+so 4 render pixels are one descriptor cell, the finest detail its objective compares."""
 CULL_NEAR = 1e-4
 """Culling keeps everything in front of a camera: a camera moving back brings Gaussians behind its near plane
 in front of it."""
@@ -55,8 +62,9 @@ class CullingCamera:
 class VisibleSubset:
     """The reference restricted to what the photos see around the current pose (see the module docstring)."""
 
-    def __init__(self, reference: ReferenceModel, cameras: list[CullingCamera], level_of_detail: float = 0.0):
-        self.reference, self.cameras, self.level_of_detail = reference, cameras, level_of_detail
+    def __init__(self, reference: ReferenceModel, cameras: list[CullingCamera], level_of_detail: float = 0.0, render_budget: int = 0):
+        self.reference, self.cameras, self.level_of_detail, self.render_budget = reference, cameras, level_of_detail, render_budget
+        self.voxel_pixels = 0.0  # the voxel (render pixels) of the last coarsening; 0: none
         self.centres = np.stack([camera_to_world(c.cam_from_meta.numpy())[:, 3] for c in cameras]) if cameras else np.zeros((0, 3))
         self.pose: Sim3 | None = None  # meta -> dataparser at the last cull (numpy)
         self.depths = np.zeros(len(cameras))  # median depth of the Gaussians each camera saw then
@@ -97,6 +105,19 @@ class VisibleSubset:
         self.subset = self.reference.subset(ids)
         if self.level_of_detail > 0 and ids.numel():
             focal = torch.stack([camera.K[:2, :2].diagonal().max() for camera in self.cameras]).float().to(means.device)
-            cells = footprint_cells(depths[:, ids], focal, inside[:, ids], self.level_of_detail)
-            self.subset = coarsen(self.subset, cells)
+            self.subset = self.coarsened(self.subset, footprint_cells(depths[:, ids], focal, inside[:, ids], 1.0))
         self.culls += 1
+
+    def coarsened(self, culled: ReferenceModel, pixel_cells: Tensor) -> ReferenceModel:
+        """`culled` merged per voxel of `level_of_detail` render pixels, doubled while the result holds more than
+        `render_budget` Gaussians (at most `MAX_VOXEL_DOUBLINGS` times). `pixel_cells`: [N] one render pixel at the
+        nearest photo that sees each Gaussian, scene units (`footprint_cells` at 1 pixel)."""
+        pixels = self.level_of_detail
+        model = coarsen(culled, pixel_cells * pixels)
+        for _ in range(MAX_VOXEL_DOUBLINGS):
+            if self.render_budget <= 0 or model.count <= self.render_budget:
+                break
+            pixels *= 2.0
+            model = coarsen(culled, pixel_cells * pixels)
+        self.voxel_pixels = pixels
+        return model

@@ -290,6 +290,8 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
     assert {"matrix", "scale", "rotation_wxyz", "translation", "initial", "final_trimmed_loss", "steps", "wall_time_s", "settings", "verdict"} <= set(record)
     assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"] and "sharpness" in record["verdict_evidence"]
     assert record["steps"] == 12 + 3 and record["settings"]["images_per_step"] == 2
+    rendered = record["rendered_model"]  # the tiny reference is far within the render budget: merged at 1 px
+    assert rendered["voxel_pixels"] == 1.0 and 0 < rendered["rendered"] <= rendered["gaussians"] and rendered["culls"] >= 1
     np.testing.assert_allclose(record["initial"]["matrix"], start, atol=1e-9)
     aligned = pycolmap.Reconstruction(str(result / "aligned"))
     meta = load_meta_image(tiny_scene / "meta" / "front")
@@ -312,10 +314,13 @@ def test_cli_without_config_picks_the_preset_for_the_device_and_labels_its_compa
     out = tmp_path / "out"
     code = register_main([
         "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
-        "--init", str(tiny_scene / "meta" / "front" / "gt_transform.json"), "--steps", "2",
+        "--init", str(tiny_scene / "meta" / "front" / "gt_transform.json"), "--steps", "2", "--render-budget", "1",
     ])
     printed = capsys.readouterr().out
     assert code == 0
+    # A budget no merge can meet: the voxel doubles to its limit (4x --level-of-detail), and the console says so.
+    rendered = json.loads((out / "front" / "transform.json").read_text())["rendered_model"]
+    assert rendered["voxel_pixels"] == 4.0 and f"rendered {rendered['rendered']:,} of the reference's {rendered['gaussians']:,} Gaussians" in printed
     expected = "paper" if torch.cuda.is_available() else "fast-cpu"  # the tiny reference uses the offline teacher
     assert f"Registration preset: {expected}" in printed
     settings = json.loads((out / "front" / "transform.json").read_text())["settings"]

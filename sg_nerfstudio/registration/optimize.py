@@ -58,6 +58,9 @@ class RegistrationResult:
     coverage: Array  # [P] fraction of rendered pixels covered by the model at the initial transform
     verdict: Verdict  # registered | uncertain | failed, with its evidence (verdict.py)
     hypotheses: list[dict] = field(default_factory=list)  # with settings.hypotheses: each optimised start and its end
+    rendered_model: dict = field(default_factory=dict)
+    """What the main stage rendered at its last cull (`rendered_model_record`): the reference's Gaussians, those
+    rendered after culling and level of detail, the merge voxel (render pixels; 0: none) and the culls."""
 
 
 class BatchSchedule:
@@ -230,7 +233,17 @@ def register(
         coverage=coverage,
         verdict=decide(evidence),
         hypotheses=hypotheses,
+        rendered_model=rendered_model_record(reference, main.losses),
     )
+
+
+def rendered_model_record(reference: ReferenceModel, losses: PhotoLosses) -> dict:
+    """{gaussians, rendered, voxel_pixels, culls} of a stage's losses at its last cull (every Gaussian, no cull,
+    when it does not cull)."""
+    visible = losses.visible
+    if visible is None:
+        return {"gaussians": reference.count, "rendered": reference.count, "voxel_pixels": 0.0, "culls": 0}
+    return {"gaussians": reference.count, "rendered": visible.subset.count, "voxel_pixels": visible.voxel_pixels, "culls": visible.culls}
 
 
 @dataclass

@@ -76,6 +76,7 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
         "wall_time_s": round(result.wall_time_s, 3),
         "time_split_s": {k: round(v, 3) for k, v in result.timings.items()},
         "effective_near_plane": result.near_plane,
+        "rendered_model": result.rendered_model,
         "hypotheses": result.hypotheses,
         "settings": result.settings,
         "photos": [

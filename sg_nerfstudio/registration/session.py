@@ -237,6 +237,12 @@ def register_one(
     with Progress(*columns, console=console, transient=True) as progress:
         task = progress.add_task(f"Registering {meta.name}", total=total_steps(job.settings, anchored=bool(keypoints)))
         result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective, keypoints=keypoints)
+    rendered = result.rendered_model
+    if rendered.get("voxel_pixels", 0.0) > job.settings.level_of_detail:
+        console.print(
+            f"{meta.name}: rendered {rendered['rendered']:,} of the reference's {rendered['gaussians']:,} Gaussians, merged at "
+            f"{rendered['voxel_pixels']:g} render pixels (--render-budget {job.settings.render_budget:,}).", soft_wrap=True,
+        )
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}

@@ -149,3 +149,36 @@ def test_bad_layout_is_one_sentence(suite, tmp_path, capsys):
     assert "gt_transform.json" in err and len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
     with pytest.raises(BenchmarkLayoutError, match="does not exist"):
         read_benchmark(tmp_path / "nowhere")
+
+
+def test_scaling_goals_are_judged_from_the_measured_records():
+    """bench.scaling's closing table compares what the run measured with the issue's goals, row by row."""
+    from rich.console import Console
+
+    from sg_nerfstudio.bench.scaling import goals_table
+
+    def record(size, mode, step, peak, **extra):
+        return {"size": size, "mode": mode, "step_s": step, "peak_rss_gb": peak, "photos": 16, "gaussians": size or 46_942, **extra}
+
+    report = {
+        "args": {"training_steps": "1500"},
+        "growth": [
+            record(0, "today", 1.8, 2.0, register_s=120.0), record(0, "new", 1.6, 1.5, register_s=45.0),
+            record(100_000, "today", 4.0, 2.6), record(100_000, "new", 2.5, 1.8),
+            record(1_000_000, "today", 26.0, 12.0), record(1_000_000, "new", 8.0, 4.6, register_s=600.0),
+        ],
+        "concurrency": {"solo": {"register_s": 50.0}, "concurrent": [{"register_s": 70.0}, {"register_s": 110.0}]},
+        "training": [
+            {"scene": "stand-in", "train_s": 900.0, "held_out_psnr": 18.3, "train_psnr": 36.6},
+            {"scene": "stand-in", "train_s": 380.0, "held_out_psnr": 17.5, "train_psnr": 36.8},
+        ],
+    }
+    console = Console(record=True, width=250)
+    goals_table(report, console)
+    lines = {line.split("│")[1].strip(): [cell.strip() for cell in line.split("│")[2:-1]] for line in console.export_text().splitlines() if line.count("│") > 2}
+    assert lines["registration of the meta-image against the model as trained (16 photos, 46,942 Gaussians) <= 60 s"] == ["45.0 s", "120.0 s", "yes"]
+    assert lines["step at 1,000,000 <= 3x step at 100,000"] == ["3.20x", "6.50x", "no"]
+    assert lines["1,000,000 Gaussians register within 24 GB (peak resident)"] == ["4.6 GB", "12.0 GB (step)", "yes"]
+    assert lines["two registrations at once: each <= about 2x its solo time"] == ["2.20x (the slower)", "-", "no"]
+    assert lines["training 1500 steps of stand-in <= 10 min"] == ["6.3 min", "15.0 min", "yes"]
+    assert lines["... same PSNR (held-out / training views, dB)"][2] == "-0.80 / +0.20 dB"

@@ -1,7 +1,8 @@
 """Registration cost at the size of real references: time per step and peak memory against the model's size.
 
     python -m sg_nerfstudio.bench.scaling --load-config <sg-feature-splat config.yml> \\
-        --meta-image <scene>/meta/front [--sizes 100000 300000 1000000] [--device cpu|cuda]
+        --meta-image <scene>/meta/front [--sizes 100000 300000 1000000] [--device cpu|cuda] \\
+        [--training-scene <sg-make-scene output>]
 
 Real references hold 0.5-5 million Gaussians; the synthetic ones this project trains on a CPU hold tens of
 thousands. The benchmark therefore *densifies* the given trained model to each size and writes it as a real
@@ -19,12 +20,20 @@ frozen-model kernels):
 - step: median wall time of `--steps` forward renders of every photo + the pose-only backward;
 - peak resident memory of the process (ru_maxrss);
 - with `--register`: a whole registration (the preset's steps, 5° / 0.1 / 10% start, verdict included) on
-  the new path: wall time, ΔR / ΔT against the meta-image's `gt_transform.json`.
+  the new path: wall time, ΔR / ΔT against the meta-image's `gt_transform.json`. With `--anchors` (the default)
+  it registers as `ns-register-meta` and `sg-demo` do: with the keypoint anchors of the SIFT initialiser built
+  from the reference's own COLMAP model and images (their time is recorded apart, `anchors_s`, the first time
+  including the reference's SIFT cloud, which is then cached); on sg-demo's reference and its front meta-image,
+  seed 0, this is the demo's own registration of that meta-image, from the same start.
 
 Then `--concurrency`: the same registration of the base model twice at once and once alone, each process
 with the default `--threads` (the cores this process may use): each concurrent run's time over the solo one.
 
-Everything is printed as tables (ratios to today's path in the same run) and written to `--output` (JSON).
+Then, with `--training-scene`, reference training in the same run (`bench.training`: `--training-steps` of the
+scene's reference, today's full-resolution feature render against the default, in this process after the others).
+
+Everything is printed as tables (ratios to today's path in the same run), closed by one table of the figures
+the issue "Registration at the size of real references" sets goals for, and written to `--output` (JSON).
 Run it alone on the machine: other jobs change every figure.
 """
 
@@ -73,7 +82,13 @@ class Args:
     """Timed steps per size and path (the first, which builds the cull, is not among them)."""
     register: bool = True
     """Also run whole registrations: both paths on the model as trained, the new path per size."""
+    anchors: bool = True
+    """Whole registrations with the SIFT keypoint anchors, as ns-register-meta registers (--no-anchors: the dense
+    objective alone)."""
     concurrency: bool = True
+    training_scene: Optional[Path] = None
+    """Also train this scene's reference (`sg-make-scene` layout) with both feature render paths (bench.training)."""
+    training_steps: int = 1500
     device: Literal["cpu", "cuda"] = "cpu"
     threads: Optional[int] = None
     """Threads of each process (default: the cores it may use)."""
@@ -97,6 +112,8 @@ class ChildArgs:
     frozen_kernels: bool = True
     steps: int = 5
     register: bool = False
+    anchors: bool = False
+    """Register with the keypoint anchors of the reference's SIFT initialiser."""
     device: str = "cpu"
     threads: Optional[int] = None
     seed: int = 0
@@ -191,7 +208,12 @@ def measure(args: ChildArgs) -> dict:
         "photos": len(photos), "render_size": [photos[0].width, photos[0].height],
     }
     if args.register:
-        result = register(reference, meta, start, settings, photos=photos, objective=objective)
+        keypoints = None
+        if args.anchors:
+            began = time.perf_counter()
+            keypoints = reference_keypoints(args.load_config, meta)
+            record.update(anchors_s=time.perf_counter() - began, anchored_photos=len(keypoints))
+        result = register(reference, meta, start, settings, photos=photos, objective=objective, keypoints=keypoints)
         errors = pose_errors(meta.poses, result.transform, truth)
         before = pose_errors(meta.poses, start, truth)
         record.update(
@@ -204,6 +226,15 @@ def measure(args: ChildArgs) -> dict:
     return record
 
 
+def reference_keypoints(load_config: Path, meta) -> list:
+    """The meta-image's keypoint anchors from the SIFT initialiser of the run's own reference, as ns-register-meta
+    builds them (COLMAP's log at warnings)."""
+    from sg_nerfstudio.initialisers.pipeline import Initialiser, InitialiserSettings, resolve_reference_source, set_colmap_verbosity
+
+    set_colmap_verbosity(False)
+    return Initialiser(resolve_reference_source(load_config, None, None), InitialiserSettings()).keypoints(meta)
+
+
 def run_child(child: ChildArgs, wait: bool = True):
     """Start `measure(child)` in a fresh Python process; its record (or the Popen when not `wait`)."""
     command = [sys.executable, "-m", "sg_nerfstudio.bench.scaling", "child", "--load-config", str(child.load_config),
@@ -211,6 +242,7 @@ def run_child(child: ChildArgs, wait: bool = True):
                "--frozen-kernels" if child.frozen_kernels else "--no-frozen-kernels",
                "--steps", str(child.steps), "--device", child.device, "--seed", str(child.seed)]
     command += ["--register"] if child.register else ["--no-register"]
+    command += ["--anchors"] if child.anchors else ["--no-anchors"]
     command += ["--threads", str(child.threads)] if child.threads else []
     command += ["--level-of-detail", str(child.level_of_detail)] if child.level_of_detail is not None else []
     command += ["--render-budget", str(child.render_budget)] if child.render_budget is not None else []
@@ -235,7 +267,7 @@ def growth(args: Args, work: Path, console: Console) -> list[dict]:
             level = args.level_of_detail if level is None else level
             whole = args.register and (mode == "new" or not size)  # today's path registers 1M Gaussians in hours
             budget = args.render_budget if mode == "new" else None
-            child = ChildArgs(config, args.meta_image, args.config, level, budget, kernels, args.steps, whole, args.device, args.threads, args.seed)
+            child = ChildArgs(config, args.meta_image, args.config, level, budget, kernels, args.steps, whole, args.anchors, args.device, args.threads, args.seed)
             record = {"size": size, "mode": mode, **run_child(child)}
             console.print(record)
             rows.append(record)
@@ -256,10 +288,15 @@ def growth_table(rows: list[dict], console: Console) -> None:
         table.add_row(
             f"{row['gaussians']:,}", row["mode"], voxel_label(row), f"{row['rendered']:,}", f"{row['load_s']:.1f}", f"{row['prepare_s']:.2f}",
             f"{row['step_s']:.3f}", f"{row['step_s'] / today[row['size']]:.2f}", f"{row['step_s'] / smallest[row['mode']]:.2f}",
-            f"{row['peak_rss_gb']:.1f}", f"{row['register_s']:.1f}" if registered else "-",
+            f"{row['peak_rss_gb']:.1f}", register_label(row) if registered else "-",
             f"{row['dR']:.2f} / {row['dT']:.3f}" if registered else "-", row.get("verdict", "-"),
         )
     console.print(table)
+
+
+def register_label(row: dict) -> str:
+    """register() wall time, with the keypoint anchors' extraction and matching after it where they ran."""
+    return f"{row['register_s']:.1f}" + (f" (+{row['anchors_s']:.0f} anchors)" if "anchors_s" in row else "")
 
 
 def voxel_label(row: dict) -> str:
@@ -272,7 +309,7 @@ def voxel_label(row: dict) -> str:
 
 def concurrency(args: Args, console: Console) -> dict:
     """The base model's registration alone, then two at once (each with the default threads)."""
-    child = ChildArgs(args.load_config, args.meta_image, args.config, args.level_of_detail, args.render_budget, True, 1, True, args.device, args.threads, args.seed)
+    child = ChildArgs(args.load_config, args.meta_image, args.config, args.level_of_detail, args.render_budget, True, 1, True, args.anchors, args.device, args.threads, args.seed)
     solo = run_child(child)
     pair = [run_child(child, wait=False) for _ in range(2)]
     together = [read_record(process) for process in pair]
@@ -286,6 +323,59 @@ def concurrency(args: Args, console: Console) -> dict:
     return {"solo": solo, "concurrent": together}
 
 
+def training(args: Args, work: Path, console: Console) -> list[dict]:
+    """`bench.training` of `--training-scene`: today's feature render (scale 0) then the default (4), one after the
+    other in this process, after every measurement process has ended."""
+    from sg_nerfstudio.bench.training import DEFAULT_SEED, train_arm, training_table
+    from sg_nerfstudio.render.threads import set_threads
+
+    threads = set_threads(args.threads)
+    rows = [train_arm(args.training_scene, scale, DEFAULT_SEED, args.training_steps, work / "training", console, 250) for scale in TRAINING_SCALES]
+    console.print(training_table(rows, args.training_steps, threads))
+    return rows
+
+
+TRAINING_SCALES = (0.0, 4.0)
+"""feature_render_scale of today's training path (features at the training resolution) and of the default."""
+
+
+def goals_table(report: dict, console: Console) -> None:
+    """The issue's goals next to what this run measured (rows only for the parts that ran)."""
+    table = Table(title="Goals of the issue \"Registration at the size of real references\", as measured in this run")
+    for column in ("goal", "new path", "today's path", "met"):
+        table.add_column(column)
+    rows = report["growth"]
+    base = {row["mode"]: row for row in rows if row["size"] == 0}
+    if "register_s" in base.get("new", {}):
+        today = f"{base['today']['register_s']:.1f} s" if "register_s" in base.get("today", {}) else "-"
+        new = base["new"]["register_s"]
+        table.add_row(f"registration of the meta-image against the model as trained ({base['new']['photos']} photos, {base['new']['gaussians']:,} Gaussians) <= 60 s",
+                      f"{new:.1f} s", today, yes(new <= 60.0))
+    sizes = sorted({row["size"] for row in rows if row["size"]})
+    if len(sizes) > 1:
+        step = {(row["size"], row["mode"]): row for row in rows}
+        growth_of = lambda mode: step[(sizes[-1], mode)]["step_s"] / step[(sizes[0], mode)]["step_s"]  # noqa: E731
+        table.add_row(f"step at {sizes[-1]:,} <= 3x step at {sizes[0]:,}", f"{growth_of('new'):.2f}x", f"{growth_of('today'):.2f}x", yes(growth_of("new") <= 3.0))
+        largest = step[(sizes[-1], "new")]
+        what = "register" if "register_s" in largest else "step"
+        table.add_row(f"{sizes[-1]:,} Gaussians {what} within 24 GB (peak resident)", f"{largest['peak_rss_gb']:.1f} GB", f"{step[(sizes[-1], 'today')]['peak_rss_gb']:.1f} GB (step)", yes(largest["peak_rss_gb"] <= 24.0))
+    if "concurrency" in report:
+        worst = max(record["register_s"] for record in report["concurrency"]["concurrent"]) / report["concurrency"]["solo"]["register_s"]
+        table.add_row("two registrations at once: each <= about 2x its solo time", f"{worst:.2f}x (the slower)", "-", yes(worst <= 2.0))
+    if "training" in report:
+        today_arm, new_arm = report["training"]
+        steps = report["args"]["training_steps"]
+        table.add_row(f"training {steps} steps of {today_arm['scene']} <= 10 min", f"{new_arm['train_s'] / 60:.1f} min", f"{today_arm['train_s'] / 60:.1f} min", yes(new_arm["train_s"] <= 600.0))
+        difference = lambda key: new_arm[key] - today_arm[key]  # noqa: E731
+        table.add_row("... same PSNR (held-out / training views, dB)", f"{new_arm['held_out_psnr']:.2f} / {new_arm['train_psnr']:.2f}",
+                      f"{today_arm['held_out_psnr']:.2f} / {today_arm['train_psnr']:.2f}", f"{difference('held_out_psnr'):+.2f} / {difference('train_psnr'):+.2f} dB")
+    console.print(table)
+
+
+def yes(condition: bool) -> str:
+    return "yes" if condition else "no"
+
+
 def main(args: Args) -> None:
     console = Console(width=160)
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="sg-scaling-"))
@@ -295,6 +385,9 @@ def main(args: Args) -> None:
         growth_table(report["growth"], console)
         if args.concurrency:
             report["concurrency"] = concurrency(args, console)
+        if args.training_scene is not None:
+            report["training"] = training(args, work, console)
+        goals_table(report, console)
     finally:
         if args.work_dir is None:
             shutil.rmtree(work, ignore_errors=True)

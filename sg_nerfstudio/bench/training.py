@@ -30,6 +30,9 @@ from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.splat.training import cpu_config, save, short_cpu_schedule, train
 
+DEFAULT_SEED = 42
+"""nerfstudio's machine.seed default."""
+
 
 @dataclass
 class Args:
@@ -45,7 +48,7 @@ class Args:
     """torch and numba threads (default: the cores this process may use)."""
     log_every: int = 250
     """Print progress every this many steps."""
-    seeds: list[int] = field(default_factory=lambda: [42])
+    seeds: list[int] = field(default_factory=lambda: [DEFAULT_SEED])
     """Training seeds (nerfstudio's machine.seed; 42 is its default); every scale trains once per seed."""
 
 
@@ -86,7 +89,15 @@ def run(args: Args) -> list[dict]:
         train_arm(scene, scale, seed, args.steps, output, console, args.log_every)
         for scene in args.scenes for seed in args.seeds for scale in args.scales
     ]
-    table = Table(title=f"Reference training, {args.steps} steps on CPU ({threads} threads)")
+    console.print(training_table(rows, args.steps, threads))
+    for row in rows:
+        console.print(f"{row['scene']} scale {row['scale']:g} seed {row['seed']}: {row['config']}")
+    return rows
+
+
+def training_table(rows: list[dict], steps: int, threads: int) -> Table:
+    """One row per arm; times as ratios to the first arm of the same scene and seed."""
+    table = Table(title=f"Reference training, {steps} steps on CPU ({threads} threads)")
     for column in ("scene", "seed", "feature_render_scale", "train s", "vs first", "Gaussians", "held-out PSNR / cos", "train PSNR / cos"):
         table.add_column(column, justify="right")
     for row in rows:
@@ -96,10 +107,7 @@ def run(args: Args) -> list[dict]:
             str(row["gaussians"]), f"{row['held_out_psnr']:.2f} / {row['held_out_cosine']:.3f} ({row['held_out_views']})",
             f"{row['train_psnr']:.2f} / {row['train_cosine']:.3f} ({row['train_views']})",
         )
-    console.print(table)
-    for row in rows:
-        console.print(f"{row['scene']} scale {row['scale']:g} seed {row['seed']}: {row['config']}")
-    return rows
+    return table
 
 
 def entrypoint() -> None:

@@ -687,6 +687,49 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
     assert dense_only.steps == optimize.total_steps(settings) == 30
 
 
+def with_wrong_focal_lengths(meta, factor: float):
+    """The meta-image as if its SfM had found every focal length `factor` times the true one (poses unchanged)."""
+    reconstruction = pycolmap.Reconstruction(meta.reconstruction)
+    for camera in reconstruction.cameras.values():
+        params = np.array(camera.params)
+        params[list(camera.focal_length_idxs())] *= factor
+        camera.params = params
+    photos = [replace(photo, camera=copy.deepcopy(reconstruction.cameras[photo.camera.camera_id])) for photo in meta.photos]
+    return replace(meta, photos=photos, reconstruction=reconstruction)
+
+
+def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, ground_truth, tmp_path):
+    """Keypoints seen through the true cameras, a meta-image whose SfM focal lengths are 5% long: the Sim(3) alone
+    cannot absorb it (the pre-aligned cameras end off the truth), the joint fit of `refine_focal` finds scales
+    within 0.5% of 1/1.05 and puts the cameras back; a registration with it renders and records that scale (transform.json,
+    the aligned model's cameras)."""
+    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.outputs import write_outputs
+
+    anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.0, seed=3)
+    wrong = with_wrong_focal_lengths(meta, 1.05)
+    anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)  # in the world frame: no dataparser transform needed
+    prealigned = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=1000)
+    fitted, scales = anchoring.fit_focal_lengths(prealigned, wrong.look_at_under(prealigned), grid_size=32, steps=1000)
+    assert sorted(scales) == sorted(photo.name for photo in meta.photos)
+    assert np.allclose(list(scales.values()), 1 / 1.05, atol=0.005)
+    before, after = (pose_errors(meta.poses, transform, ground_truth).translation for transform in (prealigned, fitted))
+    assert after < before / 3
+
+    settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0,
+                                    keypoint_prealign_steps=1000, prealigned_steps=2, refine_focal=True)
+    result = register(reference, wrong, ground_truth, settings, keypoints=anchors)
+    assert result.focal_scales.keys() == scales.keys() and np.allclose(list(result.focal_scales.values()), 1 / 1.05, atol=0.01)
+    target = write_outputs(tmp_path / "out", reference, wrong, result)
+    recorded = {photo["name"]: photo["focal_scale"] for photo in json.loads((target / "transform.json").read_text())["photos"]}
+    assert recorded == pytest.approx(result.focal_scales)
+    aligned = pycolmap.Reconstruction(str(target / "aligned"))
+    for image in aligned.images.values():
+        source = next(photo for photo in wrong.photos if photo.name == image.name)
+        assert aligned.cameras[image.camera_id].mean_focal_length() == pytest.approx(source.camera.mean_focal_length() * result.focal_scales[image.name])
+    assert register(reference, wrong, ground_truth, replace(settings, refine_focal=False), keypoints=anchors).focal_scales == {}
+
+
 def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(reference, meta, ground_truth):
     """`refine_steps` with a `refine_teacher`: after the main stage (its history unchanged) a stage with that teacher
     runs from the main stage's result and lowers the refine teacher's objective there; the step count includes it;

@@ -8,7 +8,7 @@ be rendered with a pinhole camera and compared with it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -37,6 +37,8 @@ class Photo:
         camera: its pycolmap camera (any model, pixel convention: centre of the top-left pixel at 0.5).
         cam_from_world: [3, 4] world-to-camera (OpenCV) in the meta-image frame.
         points_camera: [M, 3] the sparse points it observes, in its camera frame (OpenCV, meta units).
+        focal_scale: the registration's correction of the SfM focal length (`RegistrationSettings.refine_focal`):
+            the reference is rendered with the undistorted image's focal lengths times this (1: as SfM found them).
     """
 
     name: str
@@ -44,6 +46,7 @@ class Photo:
     camera: pycolmap.Camera
     cam_from_world: Array
     points_camera: Array
+    focal_scale: float = 1.0
 
     @property
     def point_depths(self) -> Array:
@@ -60,20 +63,28 @@ class Photo:
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
     def intrinsics_at(self, width: int, height: int) -> Array:
-        """[3, 3] K of the undistorted image resized to width x height pixels."""
+        """[3, 3] K of the undistorted image resized to width x height pixels (where its pixels were observed)."""
         K = self.pinhole_intrinsics()
         K[0] *= width / self.camera.width
         K[1] *= height / self.camera.height
         return K
 
+    def render_intrinsics_at(self, width: int, height: int) -> Array:
+        """[3, 3] K the reference is rendered with for this photo at width x height: `intrinsics_at` with the focal
+        lengths times `focal_scale` (principal point unchanged)."""
+        K = self.intrinsics_at(width, height)
+        K[0, 0] *= self.focal_scale
+        K[1, 1] *= self.focal_scale
+        return K
+
     def load_resized(self, long_side: int) -> tuple[Array, Array]:
-        """The undistorted photo area-resized to `long_side` pixels on its long side, and its K:
-        ([h, w, 3] uint8 RGB, [3, 3])."""
+        """The undistorted photo area-resized to `long_side` pixels on its long side, and the K to render the
+        reference with for it (`render_intrinsics_at`): ([h, w, 3] uint8 RGB, [3, 3])."""
         image = self.load_undistorted()
         factor = long_side / max(image.shape[:2])
         width, height = max(1, round(image.shape[1] * factor)), max(1, round(image.shape[0] * factor))
         image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-        return image, self.intrinsics_at(width, height)
+        return image, self.render_intrinsics_at(width, height)
 
     def load_undistorted(self) -> Array:
         """[H, W, 3] uint8 RGB, undistorted to `pinhole_intrinsics()`; raises MetaImageError if unreadable."""
@@ -112,6 +123,16 @@ class MetaImage:
     def poses(self) -> list[Array]:
         """[3, 4] world-to-camera (OpenCV) of every photo, meta frame."""
         return [p.cam_from_world for p in self.photos]
+
+    def with_focal_scales(self, scales: dict[str, float]) -> "MetaImage":
+        """A copy whose photos named in `scales` have that `focal_scale` (the others keep theirs)."""
+        photos = [replace(p, focal_scale=float(scales[p.name])) if p.name in scales else p for p in self.photos]
+        return replace(self, photos=photos)
+
+    def camera_focal_scales(self) -> dict[int, float]:
+        """COLMAP camera id -> the `focal_scale` of its photos, for the cameras whose photos were rescaled (photos
+        that share a camera are rescaled together: `Anchoring.fit_focal_lengths`)."""
+        return {int(p.camera.camera_id): p.focal_scale for p in self.photos if p.focal_scale != 1.0}
 
     def centroid_under(self, transform: Sim3) -> Array:
         """[3] centroid of the camera centres moved by `transform`."""

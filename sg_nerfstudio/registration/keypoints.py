@@ -42,6 +42,14 @@ from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 KERNEL_CELLS = 0.5
 """Scale c of the Cauchy kernel in teacher cells (16 px of a 1024-px photo at a 32-cell grid): about the
 initialiser's RANSAC threshold (12 px of a 640-px photo), so that its inliers sit in the quadratic part."""
+FOCAL_PRIOR = 0.1
+"""With `refine_focal`: a photo's focal length changed by this fraction costs what one keypoint at the kernel scale
+does (one pseudo-observation per photo): it holds a photo whose keypoints cannot tell focal length from depth
+at its SfM value. Weak on purpose: a Sim(3) that moves the cameras along their axes absorbs most of a focal
+error, so the keypoints' evidence for the focal length is small (on the test scene a prior of 0.02 stopped a 5%
+error halfway, 0.1 leaves under 0.5%)."""
+MAX_FOCAL_CHANGE = 0.2
+"""A fitted focal scale outside [1 / (1 + this), 1 + this] is not applied (the photo keeps its SfM focal)."""
 MIN_DEPTH = 1e-6
 """Points at or behind a camera (under the current transform) carry no keypoint term for that step."""
 
@@ -60,13 +68,16 @@ class KeypointTerm:
     def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, grid_size: int, weight: float):
         by_name = {k.name: k for k in keypoints if len(k.points2D)}
         rays, points, photo, cells = [], [], [], []
-        cam_from_meta = []
+        cam_from_meta, self.names, focal_scales, camera_ids = [], [], [], []
         for photo_meta in meta.photos:
             found = by_name.get(photo_meta.name)
             if found is None:
                 continue
             index = len(cam_from_meta)
             cam_from_meta.append(torch.from_numpy(photo_meta.cam_from_world))
+            self.names.append(photo_meta.name)
+            focal_scales.append(photo_meta.focal_scale)
+            camera_ids.append(int(photo_meta.camera.camera_id))
             rays.append(np.asarray(photo_meta.camera.cam_from_img(np.asarray(found.points2D, dtype=np.float64))))
             points.append(np.asarray(world_to_dataparser.apply(np.asarray(found.points3D, dtype=np.float64))))
             photo.append(np.full(len(found.points2D), index))
@@ -84,27 +95,35 @@ class KeypointTerm:
         cameras = torch.stack(cam_from_meta)[self.photo]  # [M, 3, 4] cam_from_meta of each keypoint's photo
         self.point_rotations, self.point_translations = cameras[:, :, :3], cameras[:, :, 3]
         self.counts = torch.bincount(self.photo, minlength=self.photos).double()
+        self.focal_scales = torch.tensor(focal_scales, dtype=torch.float64)  # [P'] the photos' Photo.focal_scale
+        self.camera_ids = sorted(set(camera_ids))  # the G COLMAP cameras of these photos (photos may share one)
+        self.camera_of = torch.tensor([self.camera_ids.index(c) for c in camera_ids])  # [P'] index into camera_ids
 
     def __bool__(self) -> bool:
         return self.photos > 0 and self.weight > 0
 
-    def residuals(self, meta_to_dataparser: Sim3) -> tuple[Tensor, Tensor]:
-        """[M] reprojection errors in teacher cells and [M] bool in front of the camera, under a torch Sim3."""
+    def residuals(self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+        """[M] reprojection errors in teacher cells and [M] bool in front of the camera, under a torch Sim3 and, with
+        `log_focal` [G], each COLMAP camera's focal lengths times exp(log_focal) on top of the photos' `focal_scale`."""
         linear, translation, scale = meta_to_dataparser.linear, meta_to_dataparser.translation, meta_to_dataparser.scale
         in_meta = (self.points - translation) @ linear / scale**2  # the inverse similarity: L^-1 = L^T / s^2
         in_camera = torch.einsum("mij,mj->mi", self.point_rotations, in_meta) + self.point_translations
         depth = in_camera[:, 2]
         in_front = depth > MIN_DEPTH
         projected = in_camera[:, :2] / torch.where(in_front, depth, torch.ones_like(depth))[:, None]
-        error = (projected - self.rays) * self.cells
+        scales = self.focal_scales if log_focal is None else self.focal_scales * torch.exp(log_focal)[self.camera_of]
+        error = (projected * scales[self.photo, None] - self.rays) * self.cells  # pixels of the undistorted photo / cell size
         return torch.sqrt((error**2).sum(-1) + 1e-18), in_front
 
-    def __call__(self, meta_to_dataparser: Sim3) -> Tensor:
-        """weight x mean over photos of the mean Cauchy cost of their keypoints (scalar, float64)."""
-        errors, in_front = self.residuals(meta_to_dataparser)
+    def __call__(self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None) -> Tensor:
+        """weight x mean over photos of the mean Cauchy cost of their keypoints (scalar, float64). With `log_focal`
+        ([G], `residuals`) each photo's mean also counts one pseudo-observation (log_focal of its camera / FOCAL_PRIOR)^2."""
+        errors, in_front = self.residuals(meta_to_dataparser, log_focal)
         cost = torch.where(in_front, torch.log1p((errors / KERNEL_CELLS) ** 2), torch.zeros_like(errors))
-        per_photo = torch.zeros(self.photos, dtype=cost.dtype).index_add(0, self.photo, cost) / self.counts
-        return self.weight * per_photo.mean()
+        total = torch.zeros(self.photos, dtype=cost.dtype).index_add(0, self.photo, cost)
+        if log_focal is None:
+            return self.weight * (total / self.counts).mean()
+        return self.weight * ((total + (log_focal[self.camera_of] / FOCAL_PRIOR) ** 2) / (self.counts + 1)).mean()
 
     def median_error_cells(self, meta_to_dataparser: Sim3) -> float:
         """Median reprojection error (teacher cells) of the keypoints in front of their cameras."""
@@ -137,20 +156,27 @@ class Anchoring:
         term = self.term(grid_size, 1.0)
         if not term or steps <= 0:
             return start
-        base = start.to_torch()
-        centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
-        delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-        optimizer = torch.optim.Adam([delta], lr=0.02)
-        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=(0.0005 / 0.02) ** (1.0 / steps))
-        for _ in range(steps):
-            optimizer.zero_grad()
-            term(Sim3.update(delta, centre_t) @ base).backward()
-            optimizer.step()
-            scheduler.step()
-        if not torch.isfinite(delta).all():
-            return start
-        with torch.no_grad():
-            return (Sim3.update(delta, centre_t) @ base).numpy()
+        return minimise_keypoint_term(term, start, centre, steps, with_focal=False)[0]
+
+    def fit_focal_lengths(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> tuple[Sim3, dict[str, float]]:
+        """The keypoint term minimised over the Sim(3) *and* one focal-length scale per COLMAP camera of the photos with
+        keypoints (one per photo where, as for Internet photos, each has its own; with the FOCAL_PRIOR
+        pseudo-observation), from `start` (best already pre-aligned): (the Sim(3), {photo name:
+        focal_scale} for the photos whose fitted scale is within MAX_FOCAL_CHANGE). A 3-photo SfM model's focal
+        lengths can be a few percent off (README "Per-photo focal lengths"); the Sim(3) cannot absorb that, and an
+        image-based alignment then places each camera nearer or farther by the same fraction."""
+        term = self.term(grid_size, 1.0)
+        if not term or steps <= 0:
+            return start, {}
+        moved, log_focal = minimise_keypoint_term(term, start, centre, steps, with_focal=True)
+        changes = torch.exp(log_focal)[term.camera_of]
+        scales = {name: float(scale * change) for name, scale, change in zip(term.names, term.focal_scales, changes)}
+        limit = np.log1p(MAX_FOCAL_CHANGE)
+        return moved, {name: scale for name, scale in scales.items() if abs(np.log(scale)) <= limit}
+
+    def for_meta(self, meta: MetaImage) -> "Anchoring":
+        """The same keypoints for `meta` (e.g. its photos with new focal scales)."""
+        return Anchoring(meta, self.keypoints, self.world_to_dataparser, self.weight)
 
     def cost(self, term: Optional[KeypointTerm], meta_to_dataparser: Sim3) -> float:
         """The term's value under a numpy Sim3 (0 without a term)."""
@@ -158,3 +184,24 @@ class Anchoring:
             return 0.0
         with torch.no_grad():
             return float(term(meta_to_dataparser.to_torch()))
+
+
+def minimise_keypoint_term(term: KeypointTerm, start: Sim3, centre: np.ndarray, steps: int, with_focal: bool) -> tuple[Sim3, Tensor]:
+    """Adam on delta [7] about `centre` (and, `with_focal`, log focal scales [G] of the term's cameras) for `steps` steps, learning rate
+    0.02 decaying to 0.0005: (the numpy Sim3 meta -> dataparser, the [G] log focal changes). `start` and zeros when
+    the optimisation diverged."""
+    base = start.to_torch()
+    centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
+    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
+    log_focal = torch.zeros(len(term.camera_ids), dtype=torch.float64, requires_grad=with_focal)
+    optimizer = torch.optim.Adam([delta, log_focal] if with_focal else [delta], lr=0.02)
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=(0.0005 / 0.02) ** (1.0 / steps))
+    for _ in range(steps):
+        optimizer.zero_grad()
+        term(Sim3.update(delta, centre_t) @ base, log_focal if with_focal else None).backward()
+        optimizer.step()
+        scheduler.step()
+    if not (torch.isfinite(delta).all() and torch.isfinite(log_focal).all()):
+        return start, torch.zeros(len(term.camera_ids), dtype=torch.float64)
+    with torch.no_grad():
+        return (Sim3.update(delta, centre_t) @ base).numpy(), log_focal.detach()

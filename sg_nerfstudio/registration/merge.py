@@ -36,11 +36,17 @@ class MergePart:
     transform: Optional[Sim3] = None  # meta -> reference world that put it there (None: the reference)
 
 
-def aligned_reconstruction(reconstruction: pycolmap.Reconstruction, transform: Sim3) -> pycolmap.Reconstruction:
+def aligned_reconstruction(reconstruction: pycolmap.Reconstruction, transform: Sim3, focal_scales: Optional[dict[int, float]] = None) -> pycolmap.Reconstruction:
     """A copy of `reconstruction` with cameras and points moved by `transform` (pycolmap moves them: the same
-    camera motion as `Sim3.move_camera`, which the tests check against it)."""
+    camera motion as `Sim3.move_camera`, which the tests check against it) and, per camera id in `focal_scales`,
+    that camera's focal lengths times the scale (`MetaImage.camera_focal_scales`: what the registration fitted)."""
     moved = pycolmap.Reconstruction(reconstruction)
     moved.transform(pycolmap.Sim3d(transform.scale, pycolmap.Rotation3d(np.asarray(transform.rotation)), np.asarray(transform.translation)))
+    for camera_id, scale in (focal_scales or {}).items():
+        camera = moved.cameras[camera_id]
+        params = np.array(camera.params)
+        params[list(camera.focal_length_idxs())] *= scale
+        camera.params = params
     return moved
 
 

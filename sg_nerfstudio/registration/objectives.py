@@ -51,7 +51,7 @@ Loader = Callable[[int], Tensor]
 class PreparedPhoto:
     name: str
     cam_from_meta: Tensor  # [3, 4] float64, OpenCV world-to-camera in the meta frame
-    K: Tensor  # [3, 3] float32, at render size
+    K: Tensor  # [3, 3] float32, at render size, the model is rendered with (Photo.render_intrinsics_at)
     width: int
     height: int
     target: Tensor  # [rows, columns, D] teacher map or RGB on the teacher grid
@@ -180,14 +180,25 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
 
     sizes = [render_size(p.camera.width, p.camera.height, settings, objective) for p in meta.photos]
     targets = objective.targets(load, sizes, meta.name)
-    Ks = [photo.intrinsics_at(w, h) for photo, (w, h) in zip(meta.photos, sizes)]
     return [
         PreparedPhoto(
-            photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(K).float(), w, h, target.float(),
-            PointPixels.of(photo.points_camera, K, w, h),
+            photo.name, torch.from_numpy(photo.cam_from_world), torch.from_numpy(photo.render_intrinsics_at(w, h)).float(), w, h, target.float(),
+            PointPixels.of(photo.points_camera, photo.intrinsics_at(w, h), w, h),
         )
-        for photo, target, K, (w, h) in zip(meta.photos, targets, Ks, sizes)
+        for photo, target, (w, h) in zip(meta.photos, targets, sizes)
     ]
+
+
+def with_focal_factors(photos: list[PreparedPhoto], factors: dict[str, float]) -> list[PreparedPhoto]:
+    """`photos` rendered with their focal lengths times `factors[name]` (photos not named keep theirs; targets and the
+    sparse points' observed pixels do not change)."""
+    rescaled = []
+    for photo in photos:
+        K = photo.K.clone()
+        K[0, 0] *= factors.get(photo.name, 1.0)
+        K[1, 1] *= factors.get(photo.name, 1.0)
+        rescaled.append(replace(photo, K=K))
+    return rescaled
 
 
 def resize_to(maps: Tensor, size: tuple[int, int]) -> Tensor:

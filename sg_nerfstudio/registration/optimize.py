@@ -26,7 +26,7 @@ from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
 from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
 from sg_nerfstudio.features import teacher_input_size
 from sg_nerfstudio.registration.objectives import (
-    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos, refine_settings,
+    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos, refine_settings, with_focal_factors,
 )
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
@@ -61,6 +61,9 @@ class RegistrationResult:
     rendered_model: dict = field(default_factory=dict)
     """What the main stage rendered at its last cull (`rendered_model_record`): the reference's Gaussians, those
     rendered after culling and level of detail, the merge voxel (render pixels; 0: none) and the culls."""
+    focal_scales: dict[str, float] = field(default_factory=dict)
+    """With `settings.refine_focal`: photo name -> the scale of its SfM focal length the registration fitted and
+    rendered with (photos not listed kept theirs)."""
 
 
 class BatchSchedule:
@@ -175,18 +178,27 @@ def register(
     transform)` is called after every step of every stage (`total_steps(settings, anchored)` in all) with the current
     estimate (meta -> world). `keypoints`: the photos' verified SIFT correspondences with the reference
     (`Initialiser.keypoints`); with `settings.keypoint_weight > 0` every stage adds their reprojection term
-    (registration/keypoints.py).
+    (registration/keypoints.py), and with `settings.refine_focal` the photos' focal lengths fitted to them before
+    the first render are used by every stage (`RegistrationResult.focal_scales`).
     """
     started = time.perf_counter()
     check_robust_settings(settings)
     objective = objective or build_objective(reference, settings)
-    photos = photos if photos is not None else prepare_photos(reference, meta, settings, objective)
     world_to_ns = reference.world_to_dataparser
     ns_to_world = world_to_ns.inverse()
     initial_ns = world_to_ns @ initial_world
     near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
     anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
     prealigned = prealigns(settings, bool(anchor))
+    current, focal_scales = initial_ns, {}
+    if prealigned:
+        current, focal_scales = keypoint_prealignment(anchor, meta, initial_ns, settings, objective.teacher.grid_size)
+        if focal_scales:
+            factors = {photo.name: focal_scales[photo.name] / photo.focal_scale for photo in meta.photos if photo.name in focal_scales}
+            meta = meta.with_focal_scales(focal_scales)
+            anchor = anchor.for_meta(meta)
+            photos = with_focal_factors(photos, factors) if photos is not None else None
+    photos = photos if photos is not None else prepare_photos(reference, meta, settings, objective)
     main_steps, main_lr = main_schedule(settings, prealigned)
     main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), main_steps, main_lr, settings.lr_final)
     initial_losses, coverage = evaluate_start(main.losses, initial_ns, meta.name)
@@ -194,9 +206,7 @@ def register(
     history = History([p.name for p in photos])
     report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
     stages = coarse_stages(reference, meta, settings, near_plane) + [main] + refine_stages(reference, meta, settings, near_plane, bool(anchor), main)
-    current, step, hypotheses = initial_ns, 0, []
-    if prealigned:
-        current = anchor.prealign(current, update_centre(meta, current, settings), main.losses.objective.teacher.grid_size, settings.keypoint_prealign_steps)
+    step, hypotheses = 0, []
     for index, stage in enumerate(stages):
         if index == 0 and settings.hypotheses > 0:
             current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, report, anchor)
@@ -234,7 +244,19 @@ def register(
         verdict=decide(evidence),
         hypotheses=hypotheses,
         rendered_model=rendered_model_record(reference, main.losses),
+        focal_scales=focal_scales,
     )
+
+
+def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, grid_size: int) -> tuple[Sim3, dict[str, float]]:
+    """The render-free stage before the first render: the keypoint term alone from `start_ns` (meta -> dataparser)
+    and, with `settings.refine_focal`, then jointly with the photos' focal lengths. (The transform, {photo name:
+    focal_scale} of the photos whose focal length was refined; empty without `refine_focal`.)"""
+    steps = settings.keypoint_prealign_steps
+    current = anchor.prealign(start_ns, update_centre(meta, start_ns, settings), grid_size, steps)
+    if not settings.refine_focal:
+        return current, {}
+    return anchor.fit_focal_lengths(current, update_centre(meta, current, settings), grid_size, steps)
 
 
 def rendered_model_record(reference: ReferenceModel, losses: PhotoLosses) -> dict:

@@ -2,8 +2,10 @@
 
     transform.json   Sim(3) meta -> reference world (matrix, scale, quaternion, translation), the initial
                      transform, the verdict (registered | uncertain | failed) with its reasons and evidence,
-                     final trimmed loss, steps, wall time, settings, the optimised hypotheses (if any)
-    aligned/         the meta-image's COLMAP model moved into the reference world frame
+                     final trimmed loss, steps, wall time, settings, the optimised hypotheses (if any), per
+                     photo its losses and the focal_scale it was rendered with
+    aligned/         the meta-image's COLMAP model moved into the reference world frame (focal lengths as the
+                     registration refined them, with `refine_focal`)
     losses.csv       per step and photo: loss, whether LTS kept it, its weight, the stage (coarse-<size> | main)
     report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (before | after, each titled; top
                      half: reference model rendered at the photo's pose, bottom half: the photo; labelled)
@@ -47,6 +49,7 @@ def write_outputs(
     overwrite: bool = False,
 ) -> Path:
     """Write all outputs into `target` (created atomically via a temporary sibling)."""
+    meta = meta.with_focal_scales(result.focal_scales)  # the intrinsics the registration rendered with
     with atomic_directory(target, overwrite=overwrite) as staging:
         _write_transform(staging, reference, meta, result)
         _write_aligned_model(staging / "aligned", meta, result.transform)
@@ -80,7 +83,8 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
         "hypotheses": result.hypotheses,
         "settings": result.settings,
         "photos": [
-            {"name": n, "initial_loss": float(a), "final_loss": float(b), "ignored_fraction": float(c), "initial_coverage": float(d)}
+            {"name": n, "initial_loss": float(a), "final_loss": float(b), "ignored_fraction": float(c), "initial_coverage": float(d),
+             "focal_scale": result.focal_scales.get(n, 1.0)}
             for n, a, b, c, d in zip(result.photo_names, result.initial_losses, result.final_losses, result.ignored_fraction, result.coverage)
         ],
     })
@@ -89,7 +93,7 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
 
 def _write_aligned_model(directory: Path, meta: MetaImage, transform: Sim3) -> None:
     directory.mkdir()
-    aligned_reconstruction(meta.reconstruction, transform).write_binary(str(directory))
+    aligned_reconstruction(meta.reconstruction, transform, meta.camera_focal_scales()).write_binary(str(directory))
 
 
 def _write_losses(path: Path, result: RegistrationResult) -> None:

@@ -243,6 +243,9 @@ def register_one(
             f"{meta.name}: rendered {rendered['rendered']:,} of the reference's {rendered['gaussians']:,} Gaussians, merged at "
             f"{rendered['voxel_pixels']:g} render pixels (--render-budget {job.settings.render_budget:,}).", soft_wrap=True,
         )
+    if result.focal_scales:
+        scales = sorted(result.focal_scales.values())
+        console.print(f"{meta.name}: focal lengths of {len(scales)} photos refined by x{scales[0]:.3f} to x{scales[-1]:.3f} (transform.json, aligned/).")
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}
@@ -289,7 +292,8 @@ def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optio
             not_merged[outcome.meta.name] = "verdict failed: " + "; ".join(outcome.result.verdict.reasons)
         else:
             transform = outcome.result.transform
-            parts.append(MergePart(outcome.meta.name, aligned_reconstruction(outcome.meta.reconstruction, transform), transform))
+            focal_scales = outcome.meta.with_focal_scales(outcome.result.focal_scales).camera_focal_scales()
+            parts.append(MergePart(outcome.meta.name, aligned_reconstruction(outcome.meta.reconstruction, transform, focal_scales), transform))
     if not any(part.transform is not None for part in parts):
         console.print(f"[yellow]No meta-image was registered with a verdict other than failed, so {target} is not written.[/yellow]")
         return

@@ -107,7 +107,8 @@ def read_registration(directory: Path, meta_dir: Optional[Path], gt_path: Option
         meta_dir = Path(record["meta_image"])
         if not meta_dir.is_dir():
             raise RegistrationViewError(f"Meta-image directory {meta_dir} recorded in {transform_path} does not exist; pass --meta-image with its current location.")
-    meta = load_meta_image(meta_dir)
+    scales = {photo["name"]: float(photo["focal_scale"]) for photo in record.get("photos") or [] if isinstance(photo, dict) and "focal_scale" in photo}
+    meta = load_meta_image(meta_dir).with_focal_scales(scales)  # the panel renders with the focal lengths registration used
     return Registration(directory.name, directory, meta, transforms, registration_summary(directory, record, len(meta.photos)))
 
 

@@ -730,6 +730,22 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     assert register(reference, wrong, ground_truth, replace(settings, refine_focal=False), keypoints=anchors).focal_scales == {}
 
 
+def test_focal_uncertainty_follows_how_well_the_sfm_determined_it(meta):
+    """pycolmap's bundle-adjustment covariance of the meta-image's model: a finite relative sigma for every camera,
+    larger once most of the model's points are gone, and the model itself untouched."""
+    from sg_nerfstudio.geometry.meta_image import relative_focal_uncertainty
+
+    before = {camera_id: np.array(camera.params) for camera_id, camera in meta.reconstruction.cameras.items()}
+    full = relative_focal_uncertainty(meta.reconstruction)
+    assert sorted(full) == sorted(meta.reconstruction.cameras) and all(0 < sigma < 1 for sigma in full.values())
+    assert all(np.array_equal(camera.params, before[camera_id]) for camera_id, camera in meta.reconstruction.cameras.items())
+    sparse = pycolmap.Reconstruction(meta.reconstruction)
+    for point_id in sorted(sparse.point3D_ids())[::4] + sorted(sparse.point3D_ids())[1::4] + sorted(sparse.point3D_ids())[2::4]:
+        sparse.delete_point3D(point_id)
+    fewer = relative_focal_uncertainty(sparse)
+    assert all(fewer[camera_id] > full[camera_id] for camera_id in full)
+
+
 def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(reference, meta, ground_truth):
     """`refine_steps` with a `refine_teacher`: after the main stage (its history unchanged) a stage with that teacher
     runs from the main stage's result and lowers the refine teacher's objective there; the step count includes it;

@@ -35,19 +35,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sg_nerfstudio.geometry.meta_image import MetaImage
+from sg_nerfstudio.geometry.meta_image import MetaImage, relative_focal_uncertainty
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 
 KERNEL_CELLS = 0.5
 """Scale c of the Cauchy kernel in teacher cells (16 px of a 1024-px photo at a 32-cell grid): about the
 initialiser's RANSAC threshold (12 px of a 640-px photo), so that its inliers sit in the quadratic part."""
-FOCAL_PRIOR = 0.1
-"""With `refine_focal`: a photo's focal length changed by this fraction costs what one keypoint at the kernel scale
-does (one pseudo-observation per photo): it holds a photo whose keypoints cannot tell focal length from depth
-at its SfM value. Weak on purpose: a Sim(3) that moves the cameras along their axes absorbs most of a focal
-error, so the keypoints' evidence for the focal length is small (on the test scene a prior of 0.02 stopped a 5%
-error halfway, 0.1 leaves under 0.5%)."""
 MAX_FOCAL_CHANGE = 0.2
 """A fitted focal scale outside [1 / (1 + this), 1 + this] is not applied (the photo keeps its SfM focal)."""
 MIN_DEPTH = 1e-6
@@ -115,15 +109,17 @@ class KeypointTerm:
         error = (projected * scales[self.photo, None] - self.rays) * self.cells  # pixels of the undistorted photo / cell size
         return torch.sqrt((error**2).sum(-1) + 1e-18), in_front
 
-    def __call__(self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None) -> Tensor:
+    def __call__(self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None, focal_sigma: Optional[Tensor] = None) -> Tensor:
         """weight x mean over photos of the mean Cauchy cost of their keypoints (scalar, float64). With `log_focal`
-        ([G], `residuals`) each photo's mean also counts one pseudo-observation (log_focal of its camera / FOCAL_PRIOR)^2."""
+        ([G], `residuals`) and its prior `focal_sigma` ([G], relative standard deviations of the SfM focal lengths) each
+        photo's mean also counts one pseudo-observation (log_focal of its camera / its sigma)^2."""
         errors, in_front = self.residuals(meta_to_dataparser, log_focal)
         cost = torch.where(in_front, torch.log1p((errors / KERNEL_CELLS) ** 2), torch.zeros_like(errors))
         total = torch.zeros(self.photos, dtype=cost.dtype).index_add(0, self.photo, cost)
         if log_focal is None:
             return self.weight * (total / self.counts).mean()
-        return self.weight * ((total + (log_focal[self.camera_of] / FOCAL_PRIOR) ** 2) / (self.counts + 1)).mean()
+        prior = ((log_focal / focal_sigma) ** 2)[self.camera_of]
+        return self.weight * ((total + prior) / (self.counts + 1)).mean()
 
     def median_error_cells(self, meta_to_dataparser: Sim3) -> float:
         """Median reprojection error (teacher cells) of the keypoints in front of their cameras."""
@@ -156,21 +152,29 @@ class Anchoring:
         term = self.term(grid_size, 1.0)
         if not term or steps <= 0:
             return start
-        return minimise_keypoint_term(term, start, centre, steps, with_focal=False)[0]
+        return minimise_keypoint_term(term, start, centre, steps)[0]
 
     def fit_focal_lengths(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> tuple[Sim3, dict[str, float]]:
         """The keypoint term minimised over the Sim(3) *and* one focal-length scale per COLMAP camera of the photos with
-        keypoints (one per photo where, as for Internet photos, each has its own; with the FOCAL_PRIOR
-        pseudo-observation), from `start` (best already pre-aligned): (the Sim(3), {photo name:
-        focal_scale} for the photos whose fitted scale is within MAX_FOCAL_CHANGE). A 3-photo SfM model's focal
-        lengths can be a few percent off (README "Per-photo focal lengths"); the Sim(3) cannot absorb that, and an
-        image-based alignment then places each camera nearer or farther by the same fraction."""
+        keypoints (one per photo where, as for Internet photos, each has its own), from `start` (best already
+        pre-aligned): (the Sim(3), {photo name: focal_scale} for the photos whose fitted scale is within
+        MAX_FOCAL_CHANGE). A 3-photo SfM model's focal lengths can be a few percent off (README "Per-photo focal
+        lengths"); the Sim(3) cannot absorb that, and an image-based alignment then places each camera nearer or
+        farther by the same fraction. Each focal length's prior is the SfM's own uncertainty
+        (`relative_focal_uncertainty`), one pseudo-observation in its photos' keypoint means: a focal length the
+        meta-image's SfM fixed well (many photos) barely moves, a poorly fixed one follows the keypoints. Cameras
+        whose uncertainty cannot be estimated keep their focal length."""
         term = self.term(grid_size, 1.0)
         if not term or steps <= 0:
             return start, {}
-        moved, log_focal = minimise_keypoint_term(term, start, centre, steps, with_focal=True)
+        uncertainty = relative_focal_uncertainty(self.meta.reconstruction)
+        sigma = torch.tensor([uncertainty.get(camera_id, np.nan) for camera_id in term.camera_ids], dtype=torch.float64)
+        free = torch.isfinite(sigma)
+        if not bool(free.any()):
+            return start, {}
+        moved, log_focal = minimise_keypoint_term(term, start, centre, steps, focal_sigma=torch.where(free, sigma, torch.ones_like(sigma)), focal_free=free)
         changes = torch.exp(log_focal)[term.camera_of]
-        scales = {name: float(scale * change) for name, scale, change in zip(term.names, term.focal_scales, changes)}
+        scales = {name: float(scale * change) for name, scale, change, own in zip(term.names, term.focal_scales, changes, free[term.camera_of]) if own}
         limit = np.log1p(MAX_FOCAL_CHANGE)
         return moved, {name: scale for name, scale in scales.items() if abs(np.log(scale)) <= limit}
 
@@ -186,22 +190,27 @@ class Anchoring:
             return float(term(meta_to_dataparser.to_torch()))
 
 
-def minimise_keypoint_term(term: KeypointTerm, start: Sim3, centre: np.ndarray, steps: int, with_focal: bool) -> tuple[Sim3, Tensor]:
-    """Adam on delta [7] about `centre` (and, `with_focal`, log focal scales [G] of the term's cameras) for `steps` steps, learning rate
-    0.02 decaying to 0.0005: (the numpy Sim3 meta -> dataparser, the [G] log focal changes). `start` and zeros when
-    the optimisation diverged."""
+def minimise_keypoint_term(
+    term: KeypointTerm, start: Sim3, centre: np.ndarray, steps: int, focal_sigma: Optional[Tensor] = None, focal_free: Optional[Tensor] = None,
+) -> tuple[Sim3, Tensor]:
+    """Adam on delta [7] about `centre` (and, with `focal_sigma` [G], the log focal scales of the term's cameras that
+    `focal_free` [G] marks, under that prior) for `steps` steps, learning rate 0.02 decaying to 0.0005: (the numpy Sim3
+    meta -> dataparser, the [G] log focal changes, 0 where not free). `start` and zeros when the optimisation diverged."""
+    with_focal = focal_sigma is not None
     base = start.to_torch()
     centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
     log_focal = torch.zeros(len(term.camera_ids), dtype=torch.float64, requires_grad=with_focal)
+    mask = focal_free.double() if focal_free is not None else torch.ones_like(log_focal)
     optimizer = torch.optim.Adam([delta, log_focal] if with_focal else [delta], lr=0.02)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=(0.0005 / 0.02) ** (1.0 / steps))
     for _ in range(steps):
         optimizer.zero_grad()
-        term(Sim3.update(delta, centre_t) @ base, log_focal if with_focal else None).backward()
+        transform = Sim3.update(delta, centre_t) @ base
+        (term(transform, log_focal * mask, focal_sigma) if with_focal else term(transform)).backward()
         optimizer.step()
         scheduler.step()
     if not (torch.isfinite(delta).all() and torch.isfinite(log_focal).all()):
         return start, torch.zeros(len(term.camera_ids), dtype=torch.float64)
     with torch.no_grad():
-        return (Sim3.update(delta, centre_t) @ base).numpy(), log_focal.detach()
+        return (Sim3.update(delta, centre_t) @ base).numpy(), (log_focal * mask).detach()

@@ -157,8 +157,8 @@ class Anchoring:
     def fit_focal_lengths(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> tuple[Sim3, dict[str, float]]:
         """The keypoint term minimised over the Sim(3) *and* one focal-length scale per COLMAP camera of the photos with
         keypoints (one per photo where, as for Internet photos, each has its own), from `start` (best already
-        pre-aligned): (the Sim(3), {photo name: focal_scale} for the photos whose fitted scale is within
-        MAX_FOCAL_CHANGE). A 3-photo SfM model's focal lengths can be a few percent off (README "Per-photo focal
+        pre-aligned): (the Sim(3), {photo name: focal_scale} for every photo of a camera whose fitted scale is within
+        MAX_FOCAL_CHANGE, keypoints or not). A 3-photo SfM model's focal lengths can be a few percent off (README "Per-photo focal
         lengths"); the Sim(3) cannot absorb that, and an image-based alignment then places each camera nearer or
         farther by the same fraction. Each focal length's prior is the SfM's own uncertainty
         (`relative_focal_uncertainty`), one pseudo-observation in its photos' keypoint means: a focal length the
@@ -173,10 +173,11 @@ class Anchoring:
         if not bool(free.any()):
             return start, {}
         moved, log_focal = minimise_keypoint_term(term, start, centre, steps, focal_sigma=torch.where(free, sigma, torch.ones_like(sigma)), focal_free=free)
-        changes = torch.exp(log_focal)[term.camera_of]
-        scales = {name: float(scale * change) for name, scale, change, own in zip(term.names, term.focal_scales, changes, free[term.camera_of]) if own}
+        change = {camera_id: float(torch.exp(value)) for camera_id, value, own in zip(term.camera_ids, log_focal, free) if own}
         limit = np.log1p(MAX_FOCAL_CHANGE)
-        return moved, {name: scale for name, scale in scales.items() if abs(np.log(scale)) <= limit}
+        change = {camera_id: value for camera_id, value in change.items() if abs(np.log(value)) <= limit}
+        # every photo of a refined camera, with keypoints or not, renders with it (as the aligned model's camera)
+        return moved, {p.name: p.focal_scale * change[int(p.camera.camera_id)] for p in self.meta.photos if int(p.camera.camera_id) in change}
 
     def for_meta(self, meta: MetaImage) -> "Anchoring":
         """The same keypoints for `meta` (e.g. its photos with new focal scales)."""

@@ -102,7 +102,8 @@ class RegistrationSettings:
     reference's size (registration/visibility.py); 0 (or less): no budget. Models that fit are rendered exactly as at
     `level_of_detail` (every CPU reference this project trains: tens of thousands of Gaussians). At 400,000 a
     1M-Gaussian reference merged at 2 px (375k rendered) and its step cost 2.9-3.1x that of a 100k one; at 300,000 it
-    merges at 4 px (146k) and costs 1.6x, its anchored registration ending as close (README "All of it in one run")."""
+    merges at 4 px (146k) and costs 1.0-1.6x (two runs), its anchored registration ending as close (README "All of it in one
+    run")."""
     update_centre: Literal["cameras", "look-at"] = "cameras"
     """Point the update delta rotates and scales about: the centroid of the meta-image's cameras (DESIGN.md, the
     paper) or the point the photos look at (`MetaImage.look_at_under`). About the cameras, a rotation moves the

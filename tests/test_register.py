@@ -715,6 +715,8 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     assert np.allclose(list(scales.values()), 1 / 1.05, atol=0.005)
     before, after = (pose_errors(meta.poses, transform, ground_truth).translation for transform in (prealigned, fitted))
     assert after < before / 3
+    far_off = Anchoring(with_wrong_focal_lengths(meta, 1.5), anchors, Sim3.identity(), 1.0)  # beyond MAX_FOCAL_CHANGE
+    assert far_off.fit_focal_lengths(prealigned, wrong.look_at_under(prealigned), grid_size=32, steps=1000) == (prealigned, {})
 
     settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0,
                                     keypoint_prealign_steps=1000, prealigned_steps=2, refine_focal=True)

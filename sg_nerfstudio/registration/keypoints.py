@@ -22,6 +22,10 @@ render-free pre-alignment, `Anchoring.prealign`, for far starts). Photos
 without correspondences (night, heavy occlusion, too few matches) simply contribute no keypoint term; a
 meta-image without any is registered by the dense objective alone (the paper's method).
 
+With `refine_focal` the render-free pre-alignment is followed by a joint fit of the Sim(3) and one focal-length scale
+per COLMAP camera (`Anchoring.fit_focal_lengths`): the term then projects with each photo's focal length times its
+scale, and every stage after it renders with those focal lengths (`Photo.focal_scale`).
+
 Frames: keypoints are pixels of the original (distorted) photo, COLMAP convention, undistorted here once with
 the photo's pycolmap camera to normalised image coordinates; points are in the *reference world* frame (the
 reference's COLMAP model) and go to the dataparser frame with the reference's `world_to_dataparser`.
@@ -43,7 +47,8 @@ KERNEL_CELLS = 0.5
 """Scale c of the Cauchy kernel in teacher cells (16 px of a 1024-px photo at a 32-cell grid): about the
 initialiser's RANSAC threshold (12 px of a 640-px photo), so that its inliers sit in the quadratic part."""
 MAX_FOCAL_CHANGE = 0.2
-"""A fitted focal scale outside [1 / (1 + this), 1 + this] is not applied (the photo keeps its SfM focal)."""
+"""A fitted focal scale outside [1 / (1 + this), 1 + this] is not believed: the focal fit is dropped (every photo keeps
+its SfM focal length and the pose stays the pre-aligned one)."""
 MIN_DEPTH = 1e-6
 """Points at or behind a camera (under the current transform) carry no keypoint term for that step."""
 
@@ -157,8 +162,9 @@ class Anchoring:
     def fit_focal_lengths(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> tuple[Sim3, dict[str, float]]:
         """The keypoint term minimised over the Sim(3) *and* one focal-length scale per COLMAP camera of the photos with
         keypoints (one per photo where, as for Internet photos, each has its own), from `start` (best already
-        pre-aligned): (the Sim(3), {photo name: focal_scale} for every photo of a camera whose fitted scale is within
-        MAX_FOCAL_CHANGE, keypoints or not). A 3-photo SfM model's focal lengths can be a few percent off (README "Per-photo focal
+        pre-aligned): (the Sim(3), {photo name: focal_scale} for every photo of a refined camera, keypoints or not);
+        `start` and no scales when a fitted scale is beyond MAX_FOCAL_CHANGE (keypoints that cannot tell focal length
+        from depth). A 3-photo SfM model's focal lengths can be a few percent off (README "Per-photo focal
         lengths"); the Sim(3) cannot absorb that, and an image-based alignment then places each camera nearer or
         farther by the same fraction. Each focal length's prior is the SfM's own uncertainty
         (`relative_focal_uncertainty`), one pseudo-observation in its photos' keypoint means: a focal length the
@@ -173,9 +179,9 @@ class Anchoring:
         if not bool(free.any()):
             return start, {}
         moved, log_focal = minimise_keypoint_term(term, start, centre, steps, focal_sigma=torch.where(free, sigma, torch.ones_like(sigma)), focal_free=free)
+        if bool((log_focal.abs() > np.log1p(MAX_FOCAL_CHANGE)).any()):
+            return start, {}  # the Sim(3) was fitted with that implausible focal length: neither is kept
         change = {camera_id: float(torch.exp(value)) for camera_id, value, own in zip(term.camera_ids, log_focal, free) if own}
-        limit = np.log1p(MAX_FOCAL_CHANGE)
-        change = {camera_id: value for camera_id, value in change.items() if abs(np.log(value)) <= limit}
         # every photo of a refined camera, with keypoints or not, renders with it (as the aligned model's camera)
         return moved, {p.name: p.focal_scale * change[int(p.camera.camera_id)] for p in self.meta.photos if int(p.camera.camera_id) in change}
 

@@ -67,14 +67,13 @@ class KeypointTerm:
     def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, grid_size: int, weight: float):
         by_name = {k.name: k for k in keypoints if len(k.points2D)}
         rays, points, photo, cells = [], [], [], []
-        cam_from_meta, self.names, focal_scales, camera_ids = [], [], [], []
+        cam_from_meta, focal_scales, camera_ids = [], [], []
         for photo_meta in meta.photos:
             found = by_name.get(photo_meta.name)
             if found is None:
                 continue
             index = len(cam_from_meta)
             cam_from_meta.append(torch.from_numpy(photo_meta.cam_from_world))
-            self.names.append(photo_meta.name)
             focal_scales.append(photo_meta.focal_scale)
             camera_ids.append(int(photo_meta.camera.camera_id))
             rays.append(np.asarray(photo_meta.camera.cam_from_img(np.asarray(found.points2D, dtype=np.float64))))

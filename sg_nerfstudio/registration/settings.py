@@ -118,10 +118,12 @@ class RegistrationSettings:
     """With keypoint anchors: steps of the keypoint term alone (no render, a few milliseconds each) that move the
     start to the keypoints' own optimum before the first stage; 0 = off."""
     refine_focal: bool = False
-    """After the keypoint pre-alignment, fit one focal-length scale per photo with keypoints jointly with the Sim(3)
-    (as many more render-free steps; `Anchoring.fit_focal_lengths`); every later stage renders those photos with it,
-    transform.json records it per photo and the aligned model's cameras carry it. For meta-images whose SfM focal
-    lengths are poorly determined (few photos); off = the SfM intrinsics as they are (the paper)."""
+    """After the keypoint pre-alignment, fit one focal-length scale per COLMAP camera of the photos with keypoints
+    jointly with the Sim(3), each held by the meta-image SfM's own uncertainty of that focal length (as many more
+    render-free steps; `Anchoring.fit_focal_lengths`); every later stage renders the photos of those cameras with it,
+    transform.json records it per photo and the aligned and merged models' cameras carry it. It moves focal lengths
+    the SfM determined poorly (3-photo meta-images) and leaves well-determined ones; off = the SfM intrinsics as they
+    are (the paper)."""
     prealigned_steps: Optional[int] = None
     """Steps of the main stage when the keypoint pre-alignment ran (it leaves the start within a fraction of a degree,
     where the dense objective needs neither the steps nor the learning rate that reach it from 5°); None: `steps`."""

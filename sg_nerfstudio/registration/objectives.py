@@ -24,6 +24,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, replace
 from typing import Callable, ClassVar
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -43,6 +44,7 @@ from sg_nerfstudio.registration.visibility import CullingCamera, VisibleSubset
 RENDER_BATCH_ELEMENTS = 2_000_000
 """Cameras x Gaussians rendered in one call: all 20 photos at once for a 20k-Gaussian CPU model, one or two
 at a time for the millions of Gaussians of a real reconstruction (bounded memory)."""
+Array = np.ndarray
 Loader = Callable[[int], Tensor]
 """index -> [H, W, 3] uint8 undistorted photo."""
 
@@ -189,16 +191,17 @@ def prepare_photos(reference: ReferenceModel, meta: MetaImage, settings: Registr
     ]
 
 
-def with_focal_factors(photos: list[PreparedPhoto], factors: dict[str, float]) -> list[PreparedPhoto]:
-    """`photos` rendered with their focal lengths times `factors[name]` (photos not named keep theirs; targets and the
-    sparse points' observed pixels do not change)."""
-    rescaled = []
+def with_camera_changes(photos: list[PreparedPhoto], factors: dict[str, float], poses: dict[str, Array]) -> list[PreparedPhoto]:
+    """`photos` rendered with their focal lengths times `factors[name]` and from `poses[name]` ([3, 4] cam_from_meta)
+    (photos not named keep theirs; targets and the sparse points' observed pixels do not change)."""
+    changed = []
     for photo in photos:
         K = photo.K.clone()
         K[0, 0] *= factors.get(photo.name, 1.0)
         K[1, 1] *= factors.get(photo.name, 1.0)
-        rescaled.append(replace(photo, K=K))
-    return rescaled
+        pose = torch.from_numpy(np.asarray(poses[photo.name], dtype=np.float64)) if photo.name in poses else photo.cam_from_meta
+        changed.append(replace(photo, K=K, cam_from_meta=pose))
+    return changed
 
 
 def resize_to(maps: Tensor, size: tuple[int, int]) -> Tensor:

@@ -19,14 +19,15 @@ import torch
 from torch import Tensor
 
 from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.geometry.alignment import align_cameras, camera_residuals
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
-from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
+from sg_nerfstudio.registration.keypoints import Anchoring, CameraFit, KeypointTerm
 from sg_nerfstudio.features import teacher_input_size
 from sg_nerfstudio.registration.objectives import (
-    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos, refine_settings, with_focal_factors,
+    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos, refine_settings, with_camera_changes,
 )
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
@@ -64,6 +65,10 @@ class RegistrationResult:
     focal_scales: dict[str, float] = field(default_factory=dict)
     """With `settings.refine_focal`: photo name -> the scale of its SfM focal length the registration fitted and
     rendered with (photos not listed kept theirs)."""
+    pose_corrections: dict[str, dict[str, float]] = field(default_factory=dict)
+    """With `settings.refine_photo_poses`: photo name -> how far the registration moved its camera from where `transform`
+    puts the meta-image's own camera: {"rotation_deg", "centre_shift" (reference world units)} (photos not listed were
+    not moved)."""
 
 
 class BatchSchedule:
@@ -178,8 +183,10 @@ def register(
     transform)` is called after every step of every stage (`total_steps(settings, anchored)` in all) with the current
     estimate (meta -> world). `keypoints`: the photos' verified SIFT correspondences with the reference
     (`Initialiser.keypoints`); with `settings.keypoint_weight > 0` every stage adds their reprojection term
-    (registration/keypoints.py), and with `settings.refine_focal` the photos' focal lengths fitted to them before
-    the first render are used by every stage (`RegistrationResult.focal_scales`).
+    (registration/keypoints.py), and with `settings.refine_focal` / `settings.refine_photo_poses` the photos' focal
+    lengths / poses fitted to them before the first render are used by every stage (`RegistrationResult.focal_scales`,
+    `pose_corrections`); with moved poses the returned transform is the final one composed with the Sim(3) that maps
+    the given cameras onto the moved ones (`geometry.alignment.align_cameras`).
     """
     started = time.perf_counter()
     check_robust_settings(settings)
@@ -190,18 +197,17 @@ def register(
     near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
     anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
     prealigned = prealigns(settings, bool(anchor))
-    current, focal_scales = initial_ns, {}
+    current, fit, given = initial_ns, CameraFit(initial_ns), meta
     if prealigned:
-        current, focal_scales = keypoint_prealignment(anchor, meta, initial_ns, settings, objective.teacher.grid_size)
-        if focal_scales:
-            factors = {photo.name: focal_scales[photo.name] / photo.focal_scale for photo in meta.photos if photo.name in focal_scales}
-            meta = meta.with_focal_scales(focal_scales)
-            anchor = anchor.for_meta(meta)
-            photos = with_focal_factors(photos, factors) if photos is not None else None
+        fit = keypoint_prealignment(anchor, meta, initial_ns, settings, objective.teacher.grid_size)
+        current = fit.transform
+        meta, photos = with_fitted_cameras(meta, photos, fit)
+        anchor = anchor.for_meta(meta)
+    camera_shift = align_cameras(np.stack(given.poses), np.stack(meta.poses)).transform if fit.poses else Sim3.identity()
     photos = photos if photos is not None else prepare_photos(reference, meta, settings, objective)
     main_steps, main_lr = main_schedule(settings, prealigned)
     main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), main_steps, main_lr, settings.lr_final)
-    initial_losses, coverage = evaluate_start(main.losses, initial_ns, meta.name)
+    initial_losses, coverage = evaluate_start(main.losses, initial_ns @ camera_shift.inverse(), meta.name)  # the given cameras at the start
 
     history = History([p.name for p in photos])
     report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
@@ -227,7 +233,7 @@ def register(
     timings = {key: sum(losses.timings[key] for losses in distinct) for key in main.losses.timings}
     timings["verdict"] = time.perf_counter() - probing  # the probes' renders (also counted in "render" and "loss")
     return RegistrationResult(
-        transform=ns_to_world @ current,
+        transform=ns_to_world @ current @ camera_shift,
         initial_transform=initial_world.numpy(),
         final_losses=final_losses,
         initial_losses=initial_losses,
@@ -244,19 +250,41 @@ def register(
         verdict=decide(evidence),
         hypotheses=hypotheses,
         rendered_model=rendered_model_record(reference, main.losses),
-        focal_scales=focal_scales,
+        focal_scales=fit.focal_scales,
+        pose_corrections=pose_corrections(given, meta, camera_shift, current.scale * ns_to_world.scale, set(fit.poses)),
     )
 
 
-def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, grid_size: int) -> tuple[Sim3, dict[str, float]]:
+def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, grid_size: int) -> CameraFit:
     """The render-free stage before the first render: the keypoint term alone from `start_ns` (meta -> dataparser)
-    and, with `settings.refine_focal`, then jointly with the photos' focal lengths. (The transform, {photo name:
-    focal_scale} of the photos whose focal length was refined; empty without `refine_focal`.)"""
+    and, with `settings.refine_focal` or `settings.refine_photo_poses`, then jointly with the photos' focal lengths and
+    / or poses (`Anchoring.fit_cameras`; nothing fitted without them)."""
     steps = settings.keypoint_prealign_steps
     current = anchor.prealign(start_ns, update_centre(meta, start_ns, settings), grid_size, steps)
-    if not settings.refine_focal:
-        return current, {}
-    return anchor.fit_focal_lengths(current, update_centre(meta, current, settings), grid_size, steps)
+    if not (settings.refine_focal or settings.refine_photo_poses):
+        return CameraFit(current)
+    pose_prior = settings.photo_pose_prior_scale if settings.refine_photo_poses else None
+    return anchor.fit_cameras(current, update_centre(meta, current, settings), grid_size, settings.camera_fit_iterations, settings.refine_focal, pose_prior)
+
+
+def with_fitted_cameras(meta: MetaImage, photos: Optional[list[PreparedPhoto]], fit: CameraFit) -> tuple[MetaImage, Optional[list[PreparedPhoto]]]:
+    """`meta` and its prepared `photos` (if any) with the focal lengths and poses of `fit`."""
+    factors = {photo.name: fit.focal_scales[photo.name] / photo.focal_scale for photo in meta.photos if photo.name in fit.focal_scales}
+    meta = meta.with_focal_scales(fit.focal_scales).with_poses(fit.poses)
+    return meta, with_camera_changes(photos, factors, fit.poses) if photos is not None else None
+
+
+def pose_corrections(given: MetaImage, moved: MetaImage, camera_shift: Sim3, world_per_meta: float, names: set[str]) -> dict[str, dict[str, float]]:
+    """Per photo in `names` (the moved ones), how far its moved camera (`moved`) sits from its given one carried by
+    `camera_shift` (the Sim(3) that maps the given cameras onto the moved ones): rotation (degrees) and centre distance
+    in reference world units (`world_per_meta`: meta units to world)."""
+    if not names:
+        return {}
+    rotation, centre = camera_residuals(camera_shift, np.stack(given.poses), np.stack(moved.poses))
+    return {
+        photo.name: {"rotation_deg": round(float(r), 4), "centre_shift": round(float(c) * world_per_meta, 6)}
+        for photo, r, c in zip(given.photos, rotation, centre) if photo.name in names
+    }
 
 
 def rendered_model_record(reference: ReferenceModel, losses: PhotoLosses) -> dict:

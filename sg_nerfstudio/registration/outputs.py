@@ -3,9 +3,10 @@
     transform.json   Sim(3) meta -> reference world (matrix, scale, quaternion, translation), the initial
                      transform, the verdict (registered | uncertain | failed) with its reasons and evidence,
                      final trimmed loss, steps, wall time, settings, the optimised hypotheses (if any), per
-                     photo its losses and the focal_scale it was rendered with
+                     photo its losses, the focal_scale it was rendered with and (with `refine_photo_poses`) its
+                     pose_correction: how far its camera was moved from where the Sim(3) puts it (null: not moved)
     aligned/         the meta-image's COLMAP model moved into the reference world frame (focal lengths as the
-                     registration refined them, with `refine_focal`)
+                     registration refined them, with `refine_focal`; its photos' poses moved rigidly)
     losses.csv       per step and photo: loss, whether LTS kept it, its weight, the stage (coarse-<size> | main)
     report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (before | after, each titled; top
                      half: reference model rendered at the photo's pose, bottom half: the photo; labelled)
@@ -84,7 +85,7 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
         "settings": result.settings,
         "photos": [
             {"name": n, "initial_loss": float(a), "final_loss": float(b), "ignored_fraction": float(c), "initial_coverage": float(d),
-             "focal_scale": result.focal_scales.get(n, 1.0)}
+             "focal_scale": result.focal_scales.get(n, 1.0), "pose_correction": result.pose_corrections.get(n)}
             for n, a, b, c, d in zip(result.photo_names, result.initial_losses, result.final_losses, result.ignored_fraction, result.coverage)
         ],
     })

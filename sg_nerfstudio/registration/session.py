@@ -246,6 +246,9 @@ def register_one(
     if result.focal_scales:
         scales = sorted(result.focal_scales.values())
         console.print(f"{meta.name}: focal lengths of {len(scales)} photos refined by x{scales[0]:.3f} to x{scales[-1]:.3f} (transform.json, aligned/).")
+    if result.pose_corrections:
+        turns = sorted(c["rotation_deg"] for c in result.pose_corrections.values())
+        console.print(f"{meta.name}: cameras of {len(turns)} photos moved within the meta-image by {turns[0]:.2f}° to {turns[-1]:.2f}° (transform.json).")
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}

@@ -124,6 +124,20 @@ class RegistrationSettings:
     transform.json records it per photo and the aligned and merged models' cameras carry it. It moves focal lengths
     the SfM determined poorly (3-photo meta-images) and leaves well-determined ones; off = the SfM intrinsics as they
     are (the paper)."""
+    refine_photo_poses: bool = False
+    """In the same joint fit as `refine_focal` (with or without it), move each photo with keypoints inside the meta-image
+    by a small rotation and centre shift, each held by a prior: `photo_pose_prior_scale` times the meta-image SfM's own
+    uncertainty of that photo's orientation relative to the others (`relative_rotation_uncertainty`; the centre shift:
+    the photo's median point depth times that angle). Every later stage renders the moved cameras, the result is the
+    final Sim(3) composed with the one that maps the meta-image's cameras onto the moved ones
+    (`geometry.alignment.align_cameras`), and transform.json records each photo's correction. For SfM models of a few
+    photos whose relative poses are a fraction of a degree off (README "Per-photo poses"); off = the meta-image is one
+    rigid body (the paper)."""
+    photo_pose_prior_scale: float = 1.0
+    """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
+    camera_fit_iterations: int = 1000
+    """At most this many L-BFGS iterations (render-free; `keypoints.fit_jointly`) for the joint fit of `refine_focal` /
+    `refine_photo_poses`."""
     prealigned_steps: Optional[int] = None
     """Steps of the main stage when the keypoint pre-alignment ran (it leaves the start within a fraction of a degree,
     where the dense objective needs neither the steps nor the learning rate that reach it from 5°); None: `steps`."""

@@ -182,6 +182,28 @@ def test_keypoint_anchors_are_inliers_that_reproject_under_the_truth(initialiser
     assert initialiser.keypoints(load_meta_image(blank_meta_image(scene, tmp_path))) == []
 
 
+def test_photos_too_weak_to_register_alone_lend_their_rig_inliers_as_anchors(initialiser, scene):
+    """Where no photo registers on its own (here: an absolute-pose minimum no photo reaches), `Initialiser.keypoints`
+    takes each photo's inliers under the meta-image's generalized pose instead: as many photos, and they reproject
+    under the ground truth as the alone-registered ones do."""
+    from dataclasses import replace as replace_settings
+
+    from sg_nerfstudio.registration.keypoints import KeypointTerm
+
+    meta = load_meta_image(scene / "meta" / "front")
+    alone = initialiser.keypoints(meta)
+    strict = Initialiser(initialiser.source, replace_settings(
+        initialiser.settings, absolute_pose=replace_settings(initialiser.settings.absolute_pose, min_inliers=100_000),
+    ))
+    assert strict(meta, "colmap").succeeded is False  # no photo registers alone
+    rig = strict.keypoints(meta)
+    assert sorted(k.name for k in rig) == sorted(k.name for k in alone)
+    truth = ground_truth(scene / "meta" / "front")
+    term = KeypointTerm(meta, rig, Sim3.identity(), grid_size=32, weight=1.0)
+    cell_px = max(meta.photos[0].camera.width, meta.photos[0].camera.height) / 32
+    assert term.median_error_cells(truth) * cell_px < 2.0  # pixels
+
+
 def test_features_and_reference_triangulation_come_from_the_cache(scene, cache_dir, initialiser):
     meta = load_meta_image(scene / "meta" / "front")
     initialiser(meta, "colmap")  # fills the cache if the order of tests did not

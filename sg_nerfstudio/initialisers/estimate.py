@@ -10,7 +10,7 @@ Camera, so distortion is handled by pycolmap.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -206,6 +206,8 @@ class GeneralizedPose:
     transform: Sim3  # meta -> reference
     num_inliers: int
     inliers_per_photo: dict[str, int]
+    inliers: dict[str, tuple[Array, Array]] = field(default_factory=dict)
+    """Photo name -> its inlier correspondences under the rig's pose: ([K, 2] pixels, [K, 3] reference world points)."""
 
 
 class _GeneralizedProblem:
@@ -294,7 +296,10 @@ def generalized_similarity(photos: list[Observations], meta_depth: float, settin
     scale, rig_from_world = _refine_scale(problem, scale, rig_from_world, mask, step / 4)
     rotation = rig_from_world[:, :3].T
     transform = Sim3.from_parts(scale, rotation, -rotation @ rig_from_world[:, 3])
-    return GeneralizedPose(transform, int(mask.sum()), per_photo)
+    inliers = {
+        p.name: (problem.points2D[(problem.camera_index == i) & mask], problem.points3D[(problem.camera_index == i) & mask]) for i, p in enumerate(used)
+    }
+    return GeneralizedPose(transform, int(mask.sum()), per_photo, inliers)
 
 
 def _refine_scale(problem: _GeneralizedProblem, scale: float, rig_from_world: Array, mask: Array, decades: float) -> tuple[float, Array]:

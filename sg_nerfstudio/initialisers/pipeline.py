@@ -29,6 +29,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from sg_nerfstudio.initialisers.estimate import (
     AbsolutePoseSettings,
+    GeneralizedPose,
     GeneralizedSettings,
     Observations,
     PhotoKeypoints,
@@ -60,6 +61,10 @@ Method = Literal["colmap", "generalized"]
 METHODS: tuple[str, ...] = ("colmap", "generalized")
 
 
+RIG_ANCHOR_MIN_INLIERS = 6
+"""Fewest inliers under the generalized pose for a photo that does not register alone to lend its keypoints as anchors
+(`Initialiser.keypoints`): six 2D-3D correspondences determine a pose, and the registration's camera fit holds the photo
+by its SfM prior besides."""
 CENTRE_RANSAC_MIN_PHOTOS = 5
 """Below this many registered photos the centre RANSAC (3-point samples) cannot reject an outlier and is poorly
 conditioned; the pose-based similarity is used instead (`estimate.similarity_from_poses`)."""
@@ -184,6 +189,7 @@ class Initialiser:
         self._cloud_error: Optional[InputError] = None
         self._index: Optional[VisualWordIndex] = None
         self._observations: dict[tuple, list[Observations]] = {}
+        self._generalized_poses: dict[tuple, Optional[GeneralizedPose]] = {}
 
     @property
     def cloud(self) -> ReferenceCloud:
@@ -220,15 +226,35 @@ class Initialiser:
 
     def keypoints(self, meta: MetaImage) -> list[PhotoKeypoints]:
         """Per photo that registers to the reference on its own (`register_photo`), its RANSAC-inlier 2D-3D
-        correspondences: the anchors of `RegistrationSettings.keypoint_weight` (registration/keypoints.py).
-        Photos that do not register are left out. Raises InputError when the reference cannot be used."""
-        anchors = []
-        for photo_observations in self.observations(meta):
+        correspondences: the anchors of `RegistrationSettings.keypoint_weight` (registration/keypoints.py). A photo
+        too weak to register alone (few or blurred matches, a night photo, occluders) is verified with the others
+        instead: its inliers under the meta-image's generalized pose (`generalized_similarity`, the photos as one
+        rig), at least RIG_ANCHOR_MIN_INLIERS of them. Photos verified neither way are left out. Raises InputError
+        when the reference cannot be used."""
+        observations = self.observations(meta)
+        anchors, alone = [], set()
+        for photo_observations in observations:
             pose = register_photo(photo_observations, self.settings.absolute_pose)
             if pose.registered:
                 mask = pose.inlier_mask
                 anchors.append(PhotoKeypoints(photo_observations.name, photo_observations.points2D[mask], photo_observations.points3D[mask]))
+                alone.add(photo_observations.name)
+        if len(alone) < len(observations):
+            rig = self.generalized_pose(meta, observations)
+            for name, (points2D, points3D) in (rig.inliers if rig is not None else {}).items():
+                if name not in alone and len(points2D) >= RIG_ANCHOR_MIN_INLIERS:
+                    anchors.append(PhotoKeypoints(name, points2D, points3D))
         return anchors
+
+    def generalized_pose(self, meta: MetaImage, observations: list[Observations]) -> Optional[GeneralizedPose]:
+        """The meta-image's generalized pose (`generalized_similarity`), computed once per set of photos."""
+        key = tuple(str(photo.path) for photo in meta.photos)
+        if key not in self._generalized_poses:
+            depths = np.concatenate([p.point_depths for p in meta.photos]) if meta.photos else np.zeros(0)
+            depths = depths[depths > 0]
+            meta_depth = float(np.median(depths)) if len(depths) else float(np.median(np.linalg.norm(meta.centres - meta.centres.mean(0), axis=1)) + 1e-9)
+            self._generalized_poses[key] = generalized_similarity(observations, meta_depth, self.settings.generalized)
+        return self._generalized_poses[key]
 
     def observations(self, meta: MetaImage) -> list[Observations]:
         """Per photo, its 2D-3D correspondences with the reference's SIFT points (computed once per set of photos)."""
@@ -311,10 +337,7 @@ class Initialiser:
 
     def _generalized(self, meta: MetaImage, observations: list[Observations]) -> InitResult:
         advance = self.progress(f"Generalized pose of {meta.name}", 1)
-        depths = np.concatenate([p.point_depths for p in meta.photos]) if meta.photos else np.zeros(0)
-        depths = depths[depths > 0]
-        meta_depth = float(np.median(depths)) if len(depths) else float(np.median(np.linalg.norm(meta.centres - meta.centres.mean(0), axis=1)) + 1e-9)
-        pose = generalized_similarity(observations, meta_depth, self.settings.generalized)
+        pose = self.generalized_pose(meta, observations)
         advance()
         photos = [PhotoPose(o.name, None, 0 if pose is None else pose.inliers_per_photo.get(o.name, 0), len(o.points2D)) for o in observations]
         if pose is None:

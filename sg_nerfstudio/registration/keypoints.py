@@ -80,7 +80,7 @@ class KeypointTerm:
     transform moves the points back into the meta frame (its inverse) rather than the cameras forward: one
     batched operation for all photos."""
 
-    def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, grid_size: int, weight: float):
+    def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, grid_size: int, weight: float, kernel: float = KERNEL_CELLS):
         by_name = {k.name: k for k in keypoints if len(k.points2D)}
         rays, points, photo, cells = [], [], [], []
         cam_from_meta, focal_scales, camera_ids, self.names, depths = [], [], [], [], []
@@ -103,7 +103,7 @@ class KeypointTerm:
             cells.append(np.tile([K[0, 0] / cell_px, K[1, 1] / cell_px], (len(found.points2D), 1)))
         self.photos = len(cam_from_meta)
         self.weight = float(weight)
-        self.kernel = KERNEL_CELLS
+        self.kernel = float(kernel)  # the Cauchy kernel's scale c, teacher cells
         if not self.photos:
             return
         self.rays = torch.from_numpy(np.concatenate(rays))
@@ -231,10 +231,10 @@ class Anchoring:
     def __bool__(self) -> bool:
         return self.weight > 0 and any(len(k.points2D) for k in self.keypoints)
 
-    def term(self, grid_size: int, start_value: float) -> Optional[KeypointTerm]:
+    def term(self, grid_size: int, start_value: float, kernel: float = KERNEL_CELLS) -> Optional[KeypointTerm]:
         if not self:
             return None
-        return KeypointTerm(self.meta, self.keypoints, self.world_to_dataparser, grid_size, self.weight * float(start_value))
+        return KeypointTerm(self.meta, self.keypoints, self.world_to_dataparser, grid_size, self.weight * float(start_value), kernel)
 
     def prealign(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> Sim3:
         """The keypoint term alone minimised from `start` (numpy Sim3, meta -> dataparser): Adam on delta about
@@ -251,26 +251,26 @@ class Anchoring:
         pre-aligned): with `focal`, one focal-length scale per COLMAP camera of the photos with keypoints (one per photo
         where, as for Internet photos, each has its own); with `pose_prior_scale`, each such photo's pose by a small
         rotation and centre shift under a prior of that times its SfM rotation uncertainty (`rotation_priors`,
-        `KeypointTerm.pose_sigma`), the keypoints then weighed with the narrower kernel of FIT_KERNEL_FRACTION. `start` alone when a fitted scale is beyond MAX_FOCAL_CHANGE or a correction beyond
-        MAX_POSE_CHANGE_DEG (keypoints that cannot tell focal length from depth, or one photo from the others), or when
-        nothing could be freed.
+        `KeypointTerm.pose_sigma`), the keypoints then weighed with the narrower kernel of FIT_KERNEL_FRACTION. `start`
+        alone when a fitted scale is beyond MAX_FOCAL_CHANGE or a correction beyond MAX_POSE_CHANGE_DEG (keypoints that
+        cannot tell focal length from depth, or one photo from the others), or when nothing could be freed.
 
         A 3-photo SfM model's focal lengths can be a few percent off and its relative poses a fraction of a degree
         (README "Per-photo focal lengths", "Per-photo poses"); the Sim(3) cannot absorb either, and an image-based
         alignment then places each camera nearer or farther, or turns the whole group to split one photo's error. Each
         focal length's prior is the SfM's own uncertainty (`relative_focal_uncertainty`): a focal length the SfM fixed
         well (many photos) barely moves, a poorly fixed one follows the keypoints; cameras whose uncertainty cannot be
-        estimated keep theirs; so do the photos whose orientation uncertainty cannot be. Every photo of a refined camera, keypoints or not, renders with it (as the aligned
-        model's camera); photos without keypoints keep their pose."""
-        term = self.term(grid_size, 1.0)
+        estimated keep theirs, and so do photos whose orientation uncertainty cannot be. Every photo of a refined
+        camera, keypoints or not, renders with it (as the aligned model's camera); photos without keypoints keep their
+        pose."""
+        kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS
+        term = self.term(grid_size, 1.0, kernel)
         if not term or iterations <= 0:
             return CameraFit(start)
         focal_free = self.focal_freedom(term) if focal else None
         pose_sigma = term.pose_sigma(self.rotation_priors(pose_prior_scale)) if pose_prior_scale is not None else None
         if focal_free is None and pose_sigma is None:
             return CameraFit(start)
-        if pose_sigma is not None:
-            term.kernel = FIT_KERNEL_FRACTION * grid_size
         fitted = fit_jointly(term, start, centre, iterations, focal_free, pose_sigma)
         if fitted is None:
             return CameraFit(start)
@@ -349,8 +349,8 @@ def fit_jointly(
     pose corrections (in units of their prior), each under its prior: (the numpy Sim3 meta -> dataparser, the fitted
     `FreeCameras`, focal scales 0 where not free); None when the optimisation diverged. From a pre-aligned start the
     problem is smooth and small (7 + G + 6 P' parameters) but ill-conditioned (a common turn of every photo against the
-    Sim(3), focal length against depth): Adam needed 4000 steps (8 s for 3 photos) where this needs 1000 iterations
-    (2.3 s) for the same result within 0.001° on the real-photo meta-images."""
+    Sim(3), focal length against depth): with a fixed 1° pose prior, Adam needed 4000 steps (8 s for 3 photos) where this
+    needs 1000 iterations (2.3 s) for the same result within 0.001° on the real-photo meta-images."""
     base = start.to_torch()
     centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)

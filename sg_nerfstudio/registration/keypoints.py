@@ -74,9 +74,8 @@ class KeypointTerm:
     Tensors: `rays` [M, 2] normalised image coordinates (x/z, y/z) of the keypoints, `points` [M, 3] the
     matched points in the dataparser frame, `photo` [M] the index of the photo each belongs to, `cells` [M, 2]
     teacher cells per unit of normalised coordinate (fx, fy of the photo over its cell size in pixels),
-    `point_rotations` [M, 3, 3] / `point_translations` [M, 3] the cam_from_meta of each keypoint's photo,
-    `rotations` [P', 3, 3] / `centres` [P', 3] the same per photo (world-to-camera rotation, centre in the meta frame)
-    for the pose corrections, `depths` [P'] each photo's median sparse-point depth (meta units, NaN without points). A
+    `rotations` [P', 3, 3] / `centres` [P', 3] each photo's world-to-camera rotation and centre in the meta frame
+    (moved by `pose_corrections` in `residuals`), `depths` [P'] each photo's median sparse-point depth (meta units, NaN without points). A
     transform moves the points back into the meta frame (its inverse) rather than the cameras forward: one
     batched operation for all photos."""
 
@@ -111,8 +110,6 @@ class KeypointTerm:
         self.photo = torch.from_numpy(np.concatenate(photo))
         self.cells = torch.from_numpy(np.concatenate(cells))
         poses = torch.stack(cam_from_meta)  # [P', 3, 4]
-        cameras = poses[self.photo]  # [M, 3, 4] cam_from_meta of each keypoint's photo
-        self.point_rotations, self.point_translations = cameras[:, :, :3], cameras[:, :, 3]
         self.rotations = poses[:, :, :3]
         self.centres = -torch.einsum("pji,pj->pi", self.rotations, poses[:, :, 3])
         self.depths = torch.tensor(depths, dtype=torch.float64)
@@ -130,11 +127,10 @@ class KeypointTerm:
         with `pose_corrections` [P', 6] each photo's camera moved (`corrected_rotations_and_centres`)."""
         linear, translation, scale = meta_to_dataparser.linear, meta_to_dataparser.translation, meta_to_dataparser.scale
         in_meta = (self.points - translation) @ linear / scale**2  # the inverse similarity: L^-1 = L^T / s^2
-        if pose_corrections is None:
-            in_camera = torch.einsum("mij,mj->mi", self.point_rotations, in_meta) + self.point_translations
-        else:
-            rotations, centres = corrected_rotations_and_centres(self.rotations, self.centres, pose_corrections)
-            in_camera = torch.einsum("mij,mj->mi", rotations[self.photo], in_meta - centres[self.photo])
+        rotations, centres = self.rotations, self.centres
+        if pose_corrections is not None:
+            rotations, centres = corrected_rotations_and_centres(rotations, centres, pose_corrections)
+        in_camera = torch.einsum("mij,mj->mi", rotations[self.photo], in_meta - centres[self.photo])
         depth = in_camera[:, 2]
         in_front = depth > MIN_DEPTH
         projected = in_camera[:, :2] / torch.where(in_front, depth, torch.ones_like(depth))[:, None]
@@ -388,8 +384,8 @@ def plausible(free: FreeCameras) -> bool:
         return False
     if free.pose_corrections is not None:
         limit = np.radians(MAX_POSE_CHANGE_DEG)
-        held = free.pose_sigma[:, 0] > 0
-        reach = torch.where(held, free.pose_sigma[:, 3] / torch.where(held, free.pose_sigma[:, 0], 1.0), 0.0) * limit  # depth x angle
-        if bool((free.pose_corrections[:, :3].norm(dim=1) > limit).any() or (free.pose_corrections[:, 3:].norm(dim=1) > reach).any()):
+        turn, shift = free.pose_corrections[:, :3].norm(dim=1), free.pose_corrections[:, 3:].norm(dim=1)
+        # shift > depth x limit, with depth = centre sigma / rotation sigma (`KeypointTerm.pose_sigma`); 0 > 0 where not moved
+        if bool((turn > limit).any() or (shift * free.pose_sigma[:, 0] > limit * free.pose_sigma[:, 3]).any()):
             return False
     return True

@@ -196,6 +196,7 @@ class GeneralizedSettings:
     scale_range_decades: float = 2.0
     """The scale is searched over this many decades either side of a first guess."""
     scale_steps_per_decade: int = 4
+    """Spacing of the first (coarsest) scale grid; finer grids follow (`search_scale`)."""
     search_trials: int = 1000
     """RANSAC trials per scale while searching (the final estimate at the chosen scale uses 10000)."""
     seed: int = 0
@@ -217,30 +218,36 @@ class _GeneralizedProblem:
         points2D: [M, 2] pixels; points3D: [M, 3] reference world; camera_index: [M] photo of each.
     """
 
-    def __init__(self, photos: list[Observations], settings: GeneralizedSettings):
+    def __init__(self, photos: list[Observations], meta_depth: float, settings: GeneralizedSettings):
         self.photos, self.settings = photos, settings
         self.points2D = np.concatenate([p.points2D for p in photos])
         self.points3D = np.concatenate([p.points3D for p in photos])
         self.camera_index = np.concatenate([np.full(len(p.points2D), i) for i, p in enumerate(photos)])
         self.cameras = [p.camera for p in photos]
-        self.meta_centroid = np.mean([centre_of(p.cam_from_meta) for p in photos], axis=0)  # [3] meta frame
+        centres = np.stack([centre_of(p.cam_from_meta) for p in photos])  # [P, 3] meta frame
+        self.meta_centroid = centres.mean(axis=0)
+        focal = float(np.median([camera.mean_focal_length() for camera in self.cameras]))
+        spread = float(np.median(np.linalg.norm(centres - self.meta_centroid, axis=1)))
+        self.pixels_per_scale_error = focal * spread / max(meta_depth, 1e-12)
+        """Pixels a photo's points move when the rig's scale is off by a relative 1 (small errors scale linearly):
+        its centre moves by that fraction of its distance to the rig's centroid, seen at the scene's depth."""
 
     def rig(self, scale: float) -> list:
         """cam_from_rig per photo when the rig frame is the meta frame scaled by `scale`."""
         return [pycolmap.Rigid3d(pycolmap.Rotation3d(p.cam_from_meta[:, :3]), scale * p.cam_from_meta[:, 3]) for p in self.photos]
 
-    def ransac(self, scale: float, trials: int, refine: bool):
-        """(rig_from_world [3, 4], inlier mask [M]) or None."""
-        options = _ransac(self.settings.max_error, self.settings.seed, trials)
+    def ransac(self, scale: float, trials: int, refine: bool, max_error: Optional[float] = None):
+        """(rig_from_world [3, 4], inlier mask [M]) or None; `max_error` pixels (default: the settings')."""
+        options = _ransac(self.settings.max_error if max_error is None else max_error, self.settings.seed, trials)
         estimator = pycolmap.estimate_and_refine_generalized_absolute_pose if refine else pycolmap.estimate_generalized_absolute_pose
         result = estimator(self.points2D, self.points3D, self.camera_index.tolist(), self.rig(scale), self.cameras, options)
         if result is None:
             return None
         return result["rig_from_world"].matrix(), np.asarray(result["inlier_mask"], dtype=bool)
 
-    def score(self, scale: float) -> tuple[int, float]:
+    def score(self, scale: float, max_error: float) -> tuple[int, float]:
         """(inliers, -mean reprojection error) of a quick RANSAC at `scale`: larger is better."""
-        found = self.ransac(scale, self.settings.search_trials, refine=False)
+        found = self.ransac(scale, self.settings.search_trials, refine=False, max_error=max_error)
         if found is None:
             return -1, -math.inf
         rig_from_world, mask = found
@@ -262,12 +269,11 @@ def generalized_similarity(photos: list[Observations], meta_depth: float, settin
     """The meta-image as one generalized camera (rig = meta frame, cameras = the photos).
 
     pycolmap's generalized absolute pose is rigid (6 DoF), so the scale is found around it: for a scale s
-    the rig holds the photos with cam_from_rig = (R_c, s t_c) (the meta frame scaled by s). A log-spaced
-    grid around the first guess `points' spread in the reference / meta_depth` picks the scale whose
-    pose has most inliers (ties: lowest reprojection error), a finer grid around it does the same, then
-    the pose is estimated and refined there, and the scale is refined continuously by minimising the
-    inliers' reprojection error (pose re-refined at each trial scale). gDLS+++ solves the 7 DoF jointly;
-    this is the same objective with pycolmap's building blocks.
+    the rig holds the photos with cam_from_rig = (R_c, s t_c) (the meta frame scaled by s). Log-spaced grids,
+    coarse to fine, around the first guess `points' spread in the reference / meta_depth` pick the scale
+    whose pose has most inliers (`search_scale`), then the pose is estimated and refined there, and the
+    scale is refined continuously by minimising the inliers' reprojection error (pose re-refined at each
+    trial scale). gDLS+++ solves the 7 DoF jointly; this is the same objective with pycolmap's building blocks.
 
     Args:
         photos: per-photo correspondences (photos without any are skipped).
@@ -279,13 +285,10 @@ def generalized_similarity(photos: list[Observations], meta_depth: float, settin
     used = [p for p in photos if len(p.points2D)]
     if sum(len(p.points2D) for p in used) < max(settings.min_inliers, 6) or len(used) < settings.min_photos:
         return None
-    problem = _GeneralizedProblem(used, settings)
+    problem = _GeneralizedProblem(used, meta_depth, settings)
     spread = float(np.median(np.linalg.norm(problem.points3D - np.median(problem.points3D, axis=0), axis=1)))
     guess = max(spread, 1e-9) / max(meta_depth, 1e-9)
-    step = 1.0 / settings.scale_steps_per_decade
-    coarse = guess * 10.0 ** np.arange(-settings.scale_range_decades, settings.scale_range_decades + step / 2, step)
-    scale = float(max(coarse, key=lambda s: problem.score(float(s))))
-    scale = float(max(scale * 10.0 ** np.linspace(-step, step, 9), key=lambda s: problem.score(float(s))))
+    scale, spacing = search_scale(problem, guess, settings)
     found = problem.ransac(scale, 10000, refine=True)
     if found is None:
         return None
@@ -293,13 +296,35 @@ def generalized_similarity(photos: list[Observations], meta_depth: float, settin
     per_photo = {p.name: int(mask[problem.camera_index == i].sum()) for i, p in enumerate(used)}
     if mask.sum() < settings.min_inliers or sum(v > 0 for v in per_photo.values()) < settings.min_photos:
         return None
-    scale, rig_from_world = _refine_scale(problem, scale, rig_from_world, mask, step / 4)
+    scale, rig_from_world = _refine_scale(problem, scale, rig_from_world, mask, spacing)
     rotation = rig_from_world[:, :3].T
     transform = Sim3.from_parts(scale, rotation, -rotation @ rig_from_world[:, 3])
     inliers = {
         p.name: (problem.points2D[(problem.camera_index == i) & mask], problem.points3D[(problem.camera_index == i) & mask]) for i, p in enumerate(used)
     }
     return GeneralizedPose(transform, int(mask.sum()), per_photo, inliers)
+
+
+def search_scale(problem: _GeneralizedProblem, guess: float, settings: GeneralizedSettings) -> tuple[float, float]:
+    """(scale, spacing in decades of the last grid): the rig scale whose generalized pose has most inliers.
+
+    A pose at the wrong scale fits one photo and leaves the others' points displaced by about
+    `pixels_per_scale_error` x the relative error; photos far apart (a walk along a facade) have a basin only
+    a few percent wide, narrower than a practical grid. So each grid scores its scales with the RANSAC
+    threshold widened by the displacement of half its spacing (a scale between grid points still counts the
+    other photos' inliers), and the next grid, 4x finer, spans the chosen point's neighbours; the search stops
+    once half a spacing displaces points by at most half of `max_error` (it then scores with at most 1.5x it).
+    """
+    spacing = 1.0 / settings.scale_steps_per_decade
+    grid = guess * 10.0 ** np.arange(-settings.scale_range_decades, settings.scale_range_decades + spacing / 2, spacing)
+    while True:
+        displacement = problem.pixels_per_scale_error * (10.0 ** (spacing / 2) - 1.0)
+        threshold = settings.max_error + displacement
+        scale = float(max(grid, key=lambda s: problem.score(float(s), threshold)))
+        if displacement <= settings.max_error / 2 or spacing < 1e-4:
+            return scale, spacing
+        spacing /= 4
+        grid = scale * 10.0 ** (spacing * np.arange(-4, 5))
 
 
 def _refine_scale(problem: _GeneralizedProblem, scale: float, rig_from_world: Array, mask: Array, decades: float) -> tuple[float, Array]:

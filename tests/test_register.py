@@ -484,6 +484,13 @@ def test_verdict_rule_follows_its_evidence():
     assert decide(Evidence(**sound | {"sharpness": shallow})).label == "uncertain"
     descending = decide(Evidence(**sound | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE}))
     assert descending.label == "uncertain" and "not converged" in descending.reasons[0]
+    held = {"sharpness": shallow, "keypoint_photos": verdict.ANCHORED_PHOTOS, "keypoint_error_cells": 0.5 * verdict.ANCHORS_HOLD_CELLS}
+    anchored = decide(Evidence(**sound | held))
+    assert anchored.label == "registered" and "anchors of 2 photos hold" in anchored.reasons[1]
+    assert decide(Evidence(**sound | held | {"keypoint_photos": verdict.ANCHORED_PHOTOS - 1})).label == "uncertain"
+    assert decide(Evidence(**sound | held | {"keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS})).label == "uncertain"
+    assert decide(Evidence(**sound | held | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE})).label == "uncertain"
+    assert decide(Evidence(**sound | held | {"sharpness": 0.5 * verdict.FAILED_SHARPNESS})).label == "failed"
 
 
 def test_depth_ratios_follow_the_scale_of_points_on_a_known_surface():

@@ -16,8 +16,10 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   wrong photos do not agree; a wrong result has few photos that agree.
 - `objective_drop`: 1 - T_final / T_initial (reported, not used: a good start has little to gain).
 - `keypoint_error_cells`, `keypoint_photos` (with keypoint anchors only, registration/keypoints.py): the median
-  reprojection error of the anchors at the result, in teacher cells, and how many photos have anchors; reported,
-  not used.
+  reprojection error of the anchors at the result, in teacher cells, and how many photos have anchors. The anchors
+  are RANSAC-verified matches of the photos against the reference's own images: when those of at least
+  `ANCHORED_PHOTOS` photos reproject within `ANCHORS_HOLD_CELLS` at the result, they fix the pose where the dense
+  objective is shallow (a reference of few views or points), so a shallow minimum alone does not make it uncertain.
 - `depth_log_ratio`, `depth_agreeing`, `depth_points` (registration/depth_agreement.py): the median log ratio of
   the reference's rendered depth to the meta-image's own sparse points' depth at the result, the share of
   points within 10%, and how many the model covers; reported, not used: a wrong scale or depth shows there
@@ -28,8 +30,8 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
 
 Rule (thresholds calibrated on generated scenes, see README "Verdict"): `failed` when fewer than
 `FAILED_AGREEING` of the photos agree or the objective is flat (sharpness below `FAILED_SHARPNESS`);
-`registered` when at least `REGISTERED_AGREEING` agree, sharpness is at least `REGISTERED_SHARPNESS` and no
-probe descends; `uncertain` otherwise. Frames: the transform is meta -> dataparser, as in `PhotoLosses`.
+`registered` when at least `REGISTERED_AGREEING` agree, sharpness is at least `REGISTERED_SHARPNESS` (or the
+anchors hold, above) and no probe descends; `uncertain` otherwise. Frames: the transform is meta -> dataparser, as in `PhotoLosses`.
 """
 
 from __future__ import annotations
@@ -58,6 +60,8 @@ FAILED_AGREEING = 1 / 3
 FAILED_SHARPNESS = 0.015
 REGISTERED_AGREEING = 0.5
 REGISTERED_SHARPNESS = 0.05
+ANCHORED_PHOTOS = 2
+ANCHORS_HOLD_CELLS = 0.25
 
 
 @dataclass
@@ -84,6 +88,13 @@ class Evidence:
     @property
     def agreeing_fraction(self) -> float:
         return self.agreeing_photos / max(self.photos, 1)
+
+    @property
+    def anchors_hold(self) -> bool:
+        """Whether the keypoint anchors of at least ANCHORED_PHOTOS photos reproject within ANCHORS_HOLD_CELLS."""
+        if self.keypoint_photos is None or self.keypoint_error_cells is None:
+            return False
+        return self.keypoint_photos >= ANCHORED_PHOTOS and self.keypoint_error_cells <= ANCHORS_HOLD_CELLS
 
 
 @dataclass
@@ -167,10 +178,13 @@ def decide(evidence: Evidence) -> Verdict:
     reasons = []
     if evidence.agreeing_fraction < REGISTERED_AGREEING:
         reasons.append(f"only {agreeing}")
-    if evidence.sharpness < REGISTERED_SHARPNESS:
+    if evidence.sharpness < REGISTERED_SHARPNESS and not evidence.anchors_hold:
         reasons.append(f"shallow minimum: {sharp}")
     if evidence.flattest_rise < DESCENT_TOLERANCE:
         reasons.append(f"not converged: a probe is {100 * -evidence.flattest_rise:.1f}% lower")
     if reasons:
         return Verdict("uncertain", reasons, evidence)
+    if evidence.sharpness < REGISTERED_SHARPNESS:
+        held = f"anchors of {evidence.keypoint_photos} photos hold within {evidence.keypoint_error_cells:.2f} cells"
+        return Verdict("registered", [agreeing, f"shallow minimum ({sharp}) but {held}"], evidence)
     return Verdict("registered", [agreeing, sharp], evidence)

@@ -671,12 +671,14 @@ def test_cli_keypoint_anchors_off_when_the_reference_gives_no_sift_cloud(referen
     assert evidence["keypoint_photos"] is None and evidence["keypoint_error_cells"] is None
 
 
-def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, ground_truth):
+def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, ground_truth, tmp_path):
     """On the tiny scene, from 30° / 0.5 / 30% away: the keypoint term alone (20% wrong matches, no render) moves
     the start to within 0.05° of the truth, and a registration with anchors and that pre-alignment ends within
     0.5° where the dense objective alone, from the same start, does not reach 5°. The pre-aligned registration runs
-    the short `prealigned_*` schedule, the dense one without anchors the full `steps`."""
+    the short `prealigned_*` schedule, the dense one without anchors the full `steps`; with `prealigned_steps` 0 it is
+    the keypoint fit alone, and its outputs are written (a loss curve without steps)."""
     from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.outputs import write_outputs
 
     anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.2, seed=2)
     start = perturbed_start(meta, ground_truth, 4, 30.0, 0.5, 0.3)
@@ -692,6 +694,10 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
     dense_only = register(reference, meta, start, replace(settings, keypoint_weight=0.0), keypoints=anchors)
     assert pose_errors(meta.poses, dense_only.transform, ground_truth).rotation_deg > 5.0
     assert dense_only.steps == optimize.total_steps(settings) == 30
+    keypoints_only = register(reference, meta, start, replace(settings, prealigned_steps=0), keypoints=anchors)
+    assert keypoints_only.steps == 0 and pose_errors(meta.poses, keypoints_only.transform, ground_truth).rotation_deg < 0.05
+    written = write_outputs(tmp_path / "keypoints-only", reference, meta, keypoints_only)
+    assert (written / "report" / "loss_curve.png").stat().st_size > 0 and (written / "transform.json").exists()
 
 
 def with_wrong_focal_lengths(meta, factor: float):

@@ -105,9 +105,9 @@ def _write_losses(path: Path, result: RegistrationResult) -> None:
 
 
 def _plot_losses(path: Path, result: RegistrationResult) -> None:
-    steps = np.array([row["step"] for row in result.history])
-    losses = np.array([row["loss"] for row in result.history])
-    kept = np.array([row["kept"] for row in result.history])
+    steps = np.array([row["step"] for row in result.history], dtype=np.int64)  # none when no stage took a step
+    losses = np.array([row["loss"] for row in result.history], dtype=np.float64)
+    kept = np.array([row["kept"] for row in result.history], dtype=bool)
     all_mean = np.bincount(steps, weights=losses) / np.maximum(np.bincount(steps), 1)
     kept_mean = np.bincount(steps, weights=losses * kept) / np.maximum(np.bincount(steps, weights=kept.astype(float)), 1)
     figure, axis = plt.subplots(figsize=(6, 3.5))

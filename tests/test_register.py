@@ -22,7 +22,7 @@ from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
 from sg_nerfstudio.registration.depth_agreement import PointPixels, log_depth_ratios, summarise
 from sg_nerfstudio.registration.metrics import pose_errors
-from sg_nerfstudio.registration import optimize
+from sg_nerfstudio.registration import optimize, verdict
 from sg_nerfstudio.registration.objectives import (
     ObjectiveSettingsError, PhotoLosses, build_objective, prepare_photos, refine_settings, teacher_on_render_target,
 )
@@ -472,7 +472,6 @@ def test_several_meta_images_merge_into_one_model_in_the_reference_frame(referen
 
 
 def test_verdict_rule_follows_its_evidence():
-    from sg_nerfstudio.registration import verdict
     from sg_nerfstudio.registration.verdict import Evidence, decide
 
     sound = dict(sharpness=2 * verdict.REGISTERED_SHARPNESS, flattest_rise=0.05, agreeing_photos=8, photos=10, median_coverage=0.8,
@@ -698,6 +697,23 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
     assert keypoints_only.steps == 0 and pose_errors(meta.poses, keypoints_only.transform, ground_truth).rotation_deg < 0.05
     written = write_outputs(tmp_path / "keypoints-only", reference, meta, keypoints_only)
     assert (written / "report" / "loss_curve.png").stat().st_size > 0 and (written / "transform.json").exists()
+
+
+def test_anchors_that_hold_make_a_shallow_minimum_registered_unless_the_photos_disagree(reference, meta, ground_truth):
+    """The verdict with keypoint anchors: exact anchors hold the registration at the truth, where the tiny scene's
+    dense objective rises under 5% one cell away (uncertain by sharpness alone): registered. Anchors made 8° away
+    (consistent with each other, as a wrong but verified match set would be) hold it there just as well, but the
+    photos' dense losses do not agree with that pose: not registered."""
+    settings = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render",
+                                    update_centre="look-at", keypoint_weight=10.0, keypoint_prealign_steps=1000,
+                                    prealigned_steps=20, prealigned_lr=0.003)
+    right = register(reference, meta, ground_truth, settings, keypoints=projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=3))
+    assert right.verdict.evidence.sharpness < verdict.REGISTERED_SHARPNESS and right.verdict.evidence.anchors_hold
+    assert right.verdict.label == "registered", right.verdict
+    elsewhere = perturbed_start(meta, ground_truth, 11, 8.0, 0.08, 0.0)
+    wrong = register(reference, meta, ground_truth, settings, keypoints=projected_keypoints(reference, meta, elsewhere, 40, 0.0, seed=3))
+    assert pose_errors(meta.poses, wrong.transform, ground_truth).rotation_deg > 7.0 and wrong.verdict.evidence.anchors_hold
+    assert wrong.verdict.label != "registered", wrong.verdict
 
 
 def with_wrong_focal_lengths(meta, factor: float):

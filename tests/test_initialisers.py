@@ -11,6 +11,7 @@ lives in a random Sim(3) frame, as in the generator.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -213,17 +214,34 @@ def test_features_and_reference_triangulation_come_from_the_cache(scene, cache_d
     assert len(list((cache_dir / "reference").iterdir())) == 1
 
 
-def blank_meta_image(scene: Path, target: Path) -> Path:
-    """The clean meta-image with its photos replaced by flat grey and by noise (nothing to match)."""
-    meta_dir = target / "blank"
+def blank_meta_image(scene: Path, target: Path, keep: int = 0) -> Path:
+    """The clean meta-image with its photos (all but the first `keep`) replaced by flat grey and by noise (nothing to
+    match)."""
+    meta_dir = target / ("blank" if keep == 0 else f"blank-but-{keep}")
     (meta_dir / "images").mkdir(parents=True)
     (meta_dir / "sparse").symlink_to(scene / "meta" / "front" / "sparse", target_is_directory=True)
     rng = np.random.default_rng(0)
     for index, photo in enumerate(sorted((scene / "meta" / "front" / "images").iterdir())):
+        if index < keep:
+            shutil.copy(photo, meta_dir / "images" / photo.name)
+            continue
         shape = cv2.imread(str(photo)).shape
         image = np.full(shape, 128, np.uint8) if index % 2 else (rng.random(shape) * 255).astype(np.uint8)
         cv2.imwrite(str(meta_dir / "images" / photo.name), image)
     return meta_dir
+
+
+def test_colmap_start_from_two_registered_photos_and_not_from_one(initialiser, scene, tmp_path):
+    """A meta-image where only two photos can register (a 3-photo meta-image with one weak photo): their poses give
+    the Sim(3) (rotation from both orientations, scale and translation from both centres); one photo alone does not."""
+    two = load_meta_image(blank_meta_image(scene, tmp_path, keep=2))
+    result = initialiser(two, "colmap")
+    assert result.succeeded, result.failure
+    assert len(result.agreeing_photos) == 2
+    errors = pose_errors([p.cam_from_world for p in two.photos], result.transform, ground_truth(scene / "meta" / "front"))
+    assert errors.rotation_deg < 2.0 and errors.translation < 0.05, (errors.rotation_deg, errors.translation)
+    one = initialiser(load_meta_image(blank_meta_image(scene, tmp_path, keep=1)), "colmap")
+    assert not one.succeeded and "only 1 of 5 photos registered to the reference (at least 2 are needed)" in one.failure
 
 
 @pytest.mark.parametrize("method", METHODS)

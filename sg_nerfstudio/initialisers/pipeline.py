@@ -78,8 +78,10 @@ class InitialiserSettings:
     """RANSAC inlier distance of the camera-centre Sim(3), reference world units. Default: 5% of the median
     distance of the reference cameras to their centroid (the reference's scale is arbitrary; the paper's 3
     was metres of GPS-scaled references)."""
-    min_registered_photos: int = 3
-    """colmap: fewest photos that must register and agree with the Sim(3)."""
+    min_registered_photos: int = 2
+    """colmap: fewest photos that must register and agree with the Sim(3). Two suffice for the pose-based similarity
+    (rotation from their orientations, scale and translation from their two centres, agreement checked on both) and
+    are what a 3-photo meta-image with one photo too weak to register offers; the centre RANSAC needs 3 of its own."""
     retrieval_count: int = 30
     """Reference images a photo is matched against when the reference has more than `exhaustive_limit`."""
     cache_dir: Optional[Path] = None

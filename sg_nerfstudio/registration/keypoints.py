@@ -27,7 +27,9 @@ per COLMAP camera (`Anchoring.fit_cameras`): the term then projects with each ph
 scale, and every stage after it renders with those focal lengths (`Photo.focal_scale`). With `refine_photo_poses` the
 same fit also moves each photo's camera inside the meta-image by a small rotation and centre shift, each held by a
 prior (`pose_sigma`): the SfM of a few photos gets their relative poses a fraction of a degree wrong, and a rigid fit
-spreads that error into the Sim(3). Later stages render the moved cameras, and the registration reports the Sim(3)
+spreads that error into the Sim(3). With `refine_distortion` it also fits each camera's first radial coefficient k1, the
+keypoints of those cameras then compared in the distorted photo (`KeypointTerm.distorted_errors`), and later stages
+compare renders with the photos undistorted again with it. Later stages render the moved cameras, and the registration reports the Sim(3)
 that maps the meta-image's own cameras onto the moved ones (`geometry.alignment.align_cameras`, the rule the ground
 truth of the benchmarks is made by) composed with the final one.
 
@@ -45,7 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from sg_nerfstudio.geometry.meta_image import MetaImage, relative_focal_uncertainty, relative_rotation_uncertainty
+from sg_nerfstudio.geometry.meta_image import MetaImage, intrinsics_uncertainty, radial_k1_index, relative_rotation_uncertainty
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 
@@ -55,6 +57,9 @@ initialiser's RANSAC threshold (12 px of a 640-px photo), so that its inliers si
 MAX_FOCAL_CHANGE = 0.2
 """A fitted focal scale outside [1 / (1 + this), 1 + this] is not believed: the focal fit is dropped (every photo keeps
 its SfM focal length and the pose stays the pre-aligned one)."""
+MAX_K1_CHANGE = 0.2
+"""A fitted change of a camera's first radial coefficient beyond this is not believed (`refine_distortion`): the camera
+fit is dropped whole. Real lenses' k1 lies within about +-0.3; the 3-photo models' SfM put it 0.03-0.18 off."""
 MAX_POSE_CHANGE_DEG = 2.0
 """A photo's fitted pose correction (`refine_photo_poses`) beyond this rotation, or beyond a centre shift that moves its
 scene as much (its median point depth times the angle), is not believed: the camera fit is dropped whole."""
@@ -81,7 +86,7 @@ class KeypointTerm:
 
     def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, grid_size: int, weight: float, kernel: float = KERNEL_CELLS):
         by_name = {k.name: k for k in keypoints if len(k.points2D)}
-        rays, points, photo, cells = [], [], [], []
+        rays, points, photo, cells, pixels, intrinsics = [], [], [], [], [], []
         cam_from_meta, focal_scales, camera_ids, self.names, depths = [], [], [], [], []
         for photo_meta in meta.photos:
             found = by_name.get(photo_meta.name)
@@ -100,12 +105,16 @@ class KeypointTerm:
             K = photo_meta.pinhole_intrinsics()
             cell_px = max(photo_meta.camera.width, photo_meta.camera.height) / grid_size
             cells.append(np.tile([K[0, 0] / cell_px, K[1, 1] / cell_px], (len(found.points2D), 1)))
+            pixels.append(np.asarray(found.points2D, dtype=np.float64))
+            intrinsics.append(np.tile([*lens_parameters(photo_meta.camera), cell_px], (len(found.points2D), 1)))
         self.photos = len(cam_from_meta)
         self.weight = float(weight)
         self.kernel = float(kernel)  # the Cauchy kernel's scale c, teacher cells
         if not self.photos:
             return
         self.rays = torch.from_numpy(np.concatenate(rays))
+        self.pixels = torch.from_numpy(np.concatenate(pixels))  # [M, 2] the keypoints in the distorted photo
+        self.intrinsics = torch.from_numpy(np.concatenate(intrinsics))  # [M, 10] `lens_parameters` of its photo's camera, cell px
         self.points = torch.from_numpy(np.concatenate(points))
         self.photo = torch.from_numpy(np.concatenate(photo))
         self.cells = torch.from_numpy(np.concatenate(cells))
@@ -121,10 +130,17 @@ class KeypointTerm:
     def __bool__(self) -> bool:
         return self.photos > 0 and self.weight > 0
 
-    def residuals(self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None, pose_corrections: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+    def residuals(
+        self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None, pose_corrections: Optional[Tensor] = None,
+        k1_delta: Optional[Tensor] = None,
+    ) -> tuple[Tensor, Tensor]:
         """[M] reprojection errors in teacher cells and [M] bool in front of the camera, under a torch Sim3 and, with
         `log_focal` [G], each COLMAP camera's focal lengths times exp(log_focal) on top of the photos' `focal_scale`;
-        with `pose_corrections` [P', 6] each photo's camera moved (`corrected_rotations_and_centres`)."""
+        with `pose_corrections` [P', 6] each photo's camera moved (`corrected_rotations_and_centres`); with `k1_delta`
+        [G] each camera's first radial coefficient changed by it, the keypoints of cameras of RADIAL_MODELS are compared
+        in the distorted photo instead (`distorted_errors`: projected, distorted with k1 + delta, scaled by the focal
+        length; exact for any focal scale), the others as without it (their rays undistorted once with the SfM
+        intrinsics, then compared in the undistorted plane: exact for a focal scale only without distortion)."""
         linear, translation, scale = meta_to_dataparser.linear, meta_to_dataparser.translation, meta_to_dataparser.scale
         in_meta = (self.points - translation) @ linear / scale**2  # the inverse similarity: L^-1 = L^T / s^2
         rotations, centres = self.rotations, self.centres
@@ -136,7 +152,24 @@ class KeypointTerm:
         projected = in_camera[:, :2] / torch.where(in_front, depth, torch.ones_like(depth))[:, None]
         scales = self.focal_scales if log_focal is None else self.focal_scales * torch.exp(log_focal)[self.camera_of]
         error = (projected * scales[self.photo, None] - self.rays) * self.cells  # pixels of the undistorted photo / cell size
+        if k1_delta is not None:
+            lens = self.intrinsics[:, 8] > 0  # keypoints of cameras with a radial model
+            distorted = self.distorted_errors(projected, scales[self.photo], k1_delta[self.camera_of][self.photo])
+            error = torch.where(lens[:, None], distorted, error)
         return torch.sqrt((error**2).sum(-1) + 1e-18), in_front
+
+    def distorted_errors(self, projected: Tensor, focal_scale: Tensor, k1_change: Tensor) -> Tensor:
+        """[M, 2] keypoint errors in cells of the distorted photo: `projected` [M, 2] (normalised, undistorted) distorted
+        with the camera's radial (k1 + `k1_change` [M], k2) and tangential (p1, p2) terms (COLMAP's RADIAL_MODELS:
+        OpenCV's formula), times its focal lengths x `focal_scale` [M], plus the principal point, minus the keypoint."""
+        fx, fy, cx, cy, k1, k2, p1, p2, _, cell_px = self.intrinsics.unbind(1)
+        x, y = projected.unbind(1)
+        r2 = x * x + y * y
+        radial = 1.0 + (k1 + k1_change) * r2 + k2 * r2 * r2
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        pixels = torch.stack([fx * focal_scale * xd + cx, fy * focal_scale * yd + cy], 1)
+        return (pixels - self.pixels) / cell_px[:, None]
 
     def __call__(self, meta_to_dataparser: Sim3, free: Optional["FreeCameras"] = None) -> Tensor:
         """weight x mean over photos of the mean Cauchy cost of their keypoints (scalar, float64). With `free` cameras
@@ -144,7 +177,7 @@ class KeypointTerm:
         pseudo-observation per prior: (log focal scale of its camera / its sigma)^2, sum((its correction / its
         sigma)^2)."""
         free = free or FreeCameras()
-        errors, in_front = self.residuals(meta_to_dataparser, free.log_focal, free.pose_corrections)
+        errors, in_front = self.residuals(meta_to_dataparser, free.log_focal, free.pose_corrections, free.k1_delta)
         cost = torch.where(in_front, torch.log1p((errors / self.kernel) ** 2), torch.zeros_like(errors))
         total = torch.zeros(self.photos, dtype=cost.dtype).index_add(0, self.photo, cost)
         priors = free.priors(self.camera_of)
@@ -175,18 +208,23 @@ class FreeCameras:
     """What a keypoint fit may change besides the Sim(3), and the priors that hold it. Tensors: `log_focal` [G] log
     focal scales of the term's COLMAP cameras, `focal_sigma` [G] their priors (relative standard deviations);
     `pose_corrections` [P', 6] per photo with keypoints a rotation vector (radians, about the camera centre, in the meta
-    frame) and a centre shift (meta units), `pose_sigma` [P', 6] their priors. None: not free."""
+    frame) and a centre shift (meta units), `pose_sigma` [P', 6] their priors; `k1_delta` [G] the change of each camera's
+    first radial coefficient, `k1_sigma` [G] its prior. None: not free."""
 
     log_focal: Optional[Tensor] = None
     focal_sigma: Optional[Tensor] = None
     pose_corrections: Optional[Tensor] = None
     pose_sigma: Optional[Tensor] = None
+    k1_delta: Optional[Tensor] = None
+    k1_sigma: Optional[Tensor] = None
 
     def priors(self, camera_of: Tensor) -> list[Tensor]:
         """One [P'] pseudo-observation cost per free kind (`camera_of` [P']: each photo's index into the cameras)."""
         out = []
         if self.log_focal is not None:
             out.append(((self.log_focal / self.focal_sigma) ** 2)[camera_of])
+        if self.k1_delta is not None:
+            out.append(((self.k1_delta / self.k1_sigma) ** 2)[camera_of])
         if self.pose_corrections is not None:
             held = self.pose_sigma > 0  # photos not moved: no correction, no prior
             out.append(torch.where(held, self.pose_corrections / torch.where(held, self.pose_sigma, torch.ones_like(self.pose_sigma)), 0.0).pow(2).sum(-1))
@@ -209,11 +247,13 @@ def corrected_rotations_and_centres(rotations: Tensor, centres: Tensor, correcti
 @dataclass
 class CameraFit:
     """The result of `Anchoring.fit_cameras`: the Sim(3) (numpy, meta -> dataparser) fitted with the cameras, {photo name:
-    focal_scale} of every photo of a refined camera, and {photo name: [3, 4] cam_from_meta} of every moved photo."""
+    focal_scale} of every photo of a refined camera, {photo name: [3, 4] cam_from_meta} of every moved photo and
+    {COLMAP camera id: k1} of every camera whose radial distortion was refined."""
 
     transform: Sim3
     focal_scales: dict[str, float] = field(default_factory=dict)
     poses: dict[str, np.ndarray] = field(default_factory=dict)
+    radial_k1: dict[int, float] = field(default_factory=dict)
 
 
 class Anchoring:
@@ -242,7 +282,10 @@ class Anchoring:
             return start
         return minimise_keypoint_term(term, start, centre, steps)
 
-    def fit_cameras(self, start: Sim3, centre: np.ndarray, grid_size: int, iterations: int, focal: bool, pose_prior_scale: Optional[float]) -> CameraFit:
+    def fit_cameras(
+        self, start: Sim3, centre: np.ndarray, grid_size: int, iterations: int, focal: bool, pose_prior_scale: Optional[float],
+        distortion: bool = False,
+    ) -> CameraFit:
         """The keypoint term minimised over the Sim(3) *and* the meta-image's cameras, from `start` (best already
         pre-aligned): with `focal`, one focal-length scale per COLMAP camera of the photos with keypoints (one per photo
         where, as for Internet photos, each has its own); with `pose_prior_scale`, each such photo's pose by a small
@@ -258,16 +301,20 @@ class Anchoring:
         well (many photos) barely moves, a poorly fixed one follows the keypoints; cameras whose uncertainty cannot be
         estimated keep theirs, and so do photos whose orientation uncertainty cannot be. Every photo of a refined
         camera, keypoints or not, renders with it (as the aligned model's camera); photos without keypoints keep their
-        pose."""
+        pose. With `distortion`, each camera of RADIAL_MODELS also fits its first radial coefficient k1 under the SfM's
+        own uncertainty of it (the keypoints compared in the distorted photo, `KeypointTerm.distorted_errors`): a 3-photo model's k1 can
+        be off by a few hundredths, which moves its cameras along their axes as a wrong focal length does."""
         kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS
         term = self.term(grid_size, 1.0, kernel)
         if not term or iterations <= 0:
             return CameraFit(start)
-        focal_free = self.focal_freedom(term) if focal else None
+        focal_sigma, k1_sigma = intrinsics_uncertainty(self.meta.reconstruction) if focal or distortion else ({}, {})
+        focal_free = freedom(focal_sigma, term.camera_ids) if focal else None
+        k1_free = freedom(k1_sigma, term.camera_ids) if distortion else None
         pose_sigma = term.pose_sigma(self.rotation_priors(pose_prior_scale)) if pose_prior_scale is not None else None
-        if focal_free is None and pose_sigma is None:
+        if focal_free is None and pose_sigma is None and k1_free is None:
             return CameraFit(start)
-        fitted = fit_jointly(term, start, centre, iterations, focal_free, pose_sigma)
+        fitted = fit_jointly(term, start, centre, iterations, focal_free, pose_sigma, k1_free)
         if fitted is None:
             return CameraFit(start)
         moved, free = fitted
@@ -277,6 +324,12 @@ class Anchoring:
         if free.log_focal is not None:
             change = {camera_id: float(torch.exp(value)) for camera_id, value, own in zip(term.camera_ids, free.log_focal, focal_free[1]) if own}
             fit.focal_scales = {p.name: p.focal_scale * change[int(p.camera.camera_id)] for p in self.meta.photos if int(p.camera.camera_id) in change}
+        if free.k1_delta is not None:
+            cameras = self.meta.reconstruction.cameras
+            fit.radial_k1 = {
+                camera_id: float(cameras[camera_id].params[radial_k1_index(cameras[camera_id])] + float(delta))
+                for camera_id, delta, own in zip(term.camera_ids, free.k1_delta, k1_free[1]) if own
+            }
         if free.pose_corrections is not None:
             rotations, centres = corrected_rotations_and_centres(term.rotations, term.centres, free.pose_corrections)
             translations = -torch.einsum("pij,pj->pi", rotations, centres)
@@ -297,13 +350,6 @@ class Anchoring:
             for name, sigma in relative_rotation_uncertainty(self.meta.reconstruction).items() if name in sides
         }
 
-    def focal_freedom(self, term: KeypointTerm) -> Optional[tuple[Tensor, Tensor]]:
-        """([G] prior sigma of each camera's log focal scale, [G] bool: free) from the SfM's uncertainty; None if none is free."""
-        uncertainty = relative_focal_uncertainty(self.meta.reconstruction)
-        sigma = torch.tensor([uncertainty.get(camera_id, np.nan) for camera_id in term.camera_ids], dtype=torch.float64)
-        free = torch.isfinite(sigma)
-        return (torch.where(free, sigma, torch.ones_like(sigma)), free) if bool(free.any()) else None
-
     def for_meta(self, meta: MetaImage) -> "Anchoring":
         """The same keypoints for `meta` (e.g. its photos with new focal scales)."""
         return Anchoring(meta, self.keypoints, self.world_to_dataparser, self.weight)
@@ -314,6 +360,27 @@ class Anchoring:
             return 0.0
         with torch.no_grad():
             return float(term(meta_to_dataparser.to_torch()))
+
+
+def freedom(uncertainty: dict[int, float], camera_ids: list[int]) -> Optional[tuple[Tensor, Tensor]]:
+    """([G] prior sigma per camera of `camera_ids` from the SfM's `uncertainty` {camera id: sigma}, [G] bool: free, the
+    cameras it has a sigma for); None if none is free."""
+    sigma = torch.tensor([uncertainty.get(camera_id, np.nan) for camera_id in camera_ids], dtype=torch.float64)
+    free = torch.isfinite(sigma)
+    return (torch.where(free, sigma, torch.ones_like(sigma)), free) if bool(free.any()) else None
+
+
+def lens_parameters(camera) -> np.ndarray:
+    """[9] (fx, fy, cx, cy, k1, k2, p1, p2, 1) of a camera of RADIAL_MODELS in OpenCV's form (absent terms 0); zeros
+    for other models (the last entry says which)."""
+    params, name = np.asarray(camera.params, dtype=np.float64), camera.model.name
+    if name == "SIMPLE_RADIAL":
+        return np.array([params[0], params[0], params[1], params[2], params[3], 0.0, 0.0, 0.0, 1.0])
+    if name == "RADIAL":
+        return np.array([params[0], params[0], params[1], params[2], params[3], params[4], 0.0, 0.0, 1.0])
+    if name == "OPENCV":
+        return np.array([*params[:8], 1.0])
+    return np.zeros(9)
 
 
 def minimise_keypoint_term(term: KeypointTerm, start: Sim3, centre: np.ndarray, steps: int) -> Sim3:
@@ -339,11 +406,13 @@ def minimise_keypoint_term(term: KeypointTerm, start: Sim3, centre: np.ndarray, 
 def fit_jointly(
     term: KeypointTerm, start: Sim3, centre: np.ndarray, iterations: int,
     focal: Optional[tuple[Tensor, Tensor]] = None, pose_sigma: Optional[Tensor] = None,
+    k1: Optional[tuple[Tensor, Tensor]] = None,
 ) -> Optional[tuple[Sim3, FreeCameras]]:
     """L-BFGS (strong Wolfe line search, at most `iterations`) on delta [7] about `centre` and, with `focal` ([G] prior
     sigmas, [G] bool free), the log focal scales of the term's cameras marked free, with `pose_sigma` [P', 6] the photos'
-    pose corrections (in units of their prior), each under its prior: (the numpy Sim3 meta -> dataparser, the fitted
-    `FreeCameras`, focal scales 0 where not free); None when the optimisation diverged. From a pre-aligned start the
+    pose corrections (in units of their prior), with `k1` ([G] prior sigmas, [G] bool free) the changes of the cameras'
+    first radial coefficients, each under its prior: (the numpy Sim3 meta -> dataparser, the fitted `FreeCameras`,
+    focal scales and k1 changes 0 where not free); None when the optimisation diverged. From a pre-aligned start the
     problem is smooth and small (7 + G + 6 P' parameters) but ill-conditioned (a common turn of every photo against the
     Sim(3), focal length against depth): with a fixed 1° pose prior, Adam needed 4000 steps (8 s for 3 photos) where this
     needs 1000 iterations (2.3 s) for the same result within 0.001° on the real-photo meta-images."""
@@ -352,15 +421,17 @@ def fit_jointly(
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
     log_focal = torch.zeros(len(term.camera_ids), dtype=torch.float64, requires_grad=focal is not None)
     corrections = torch.zeros(term.photos, 6, dtype=torch.float64, requires_grad=pose_sigma is not None)
+    k1_delta = torch.zeros(len(term.camera_ids), dtype=torch.float64, requires_grad=k1 is not None)
 
     def cameras() -> FreeCameras:
         return FreeCameras(
             log_focal * focal[1].double() if focal is not None else None, focal[0] if focal is not None else None,
             corrections * pose_sigma if pose_sigma is not None else None, pose_sigma,
+            k1_delta * k1[1].double() if k1 is not None else None, k1[0] if k1 is not None else None,
         )
 
     optimizer = torch.optim.LBFGS(
-        [delta] + [t for t in (log_focal, corrections) if t.requires_grad], lr=1.0, max_iter=iterations, history_size=20,
+        [delta] + [t for t in (log_focal, corrections, k1_delta) if t.requires_grad], lr=1.0, max_iter=iterations, history_size=20,
         tolerance_grad=1e-12, tolerance_change=1e-15, line_search_fn="strong_wolfe",
     )
 
@@ -371,16 +442,19 @@ def fit_jointly(
         return value
 
     optimizer.step(closure)
-    if not all(bool(torch.isfinite(t).all()) for t in (delta, log_focal, corrections)):
+    if not all(bool(torch.isfinite(t).all()) for t in (delta, log_focal, corrections, k1_delta)):
         return None
     with torch.no_grad():
         return (Sim3.update(delta, centre_t) @ base).numpy(), cameras()
 
 
 def plausible(free: FreeCameras) -> bool:
-    """Whether fitted cameras are within MAX_FOCAL_CHANGE (focal scales) and MAX_POSE_CHANGE_DEG (pose corrections; the
-    centre shift compared with the photo's median point depth times that angle)."""
+    """Whether fitted cameras are within MAX_FOCAL_CHANGE (focal scales), MAX_K1_CHANGE (radial coefficients) and
+    MAX_POSE_CHANGE_DEG (pose corrections; the centre shift compared with the photo's median point depth times that
+    angle)."""
     if free.log_focal is not None and bool((free.log_focal.abs() > np.log1p(MAX_FOCAL_CHANGE)).any()):
+        return False
+    if free.k1_delta is not None and bool((free.k1_delta.abs() > MAX_K1_CHANGE).any()):
         return False
     if free.pose_corrections is not None:
         limit = np.radians(MAX_POSE_CHANGE_DEG)

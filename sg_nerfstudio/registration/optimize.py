@@ -69,6 +69,9 @@ class RegistrationResult:
     """With `settings.refine_photo_poses`: photo name -> how far the registration moved its camera from where `transform`
     puts the meta-image's own camera: {"rotation_deg", "centre_shift" (reference world units)} (photos not listed were
     not moved)."""
+    radial_k1: dict[int, float] = field(default_factory=dict)
+    """With `settings.refine_distortion`: COLMAP camera id -> the first radial coefficient the registration fitted and
+    undistorted its photos with (cameras not listed kept theirs)."""
 
 
 class BatchSchedule:
@@ -251,6 +254,7 @@ def register(
         hypotheses=hypotheses,
         rendered_model=rendered_model_record(reference, main.losses),
         focal_scales=fit.focal_scales,
+        radial_k1=fit.radial_k1,
         pose_corrections=pose_corrections(given, meta, camera_shift, current.scale * ns_to_world.scale, set(fit.poses)),
     )
 
@@ -261,17 +265,23 @@ def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, se
     / or poses (`Anchoring.fit_cameras`; nothing fitted without them)."""
     steps = settings.keypoint_prealign_steps
     current = anchor.prealign(start_ns, update_centre(meta, start_ns, settings), grid_size, steps)
-    if not (settings.refine_focal or settings.refine_photo_poses):
+    if not (settings.refine_focal or settings.refine_photo_poses or settings.refine_distortion):
         return CameraFit(current)
     pose_prior = settings.photo_pose_prior_scale if settings.refine_photo_poses else None
-    return anchor.fit_cameras(current, update_centre(meta, current, settings), grid_size, settings.camera_fit_iterations, settings.refine_focal, pose_prior)
+    return anchor.fit_cameras(
+        current, update_centre(meta, current, settings), grid_size, settings.camera_fit_iterations, settings.refine_focal, pose_prior,
+        settings.refine_distortion,
+    )
 
 
 def with_fitted_cameras(meta: MetaImage, photos: Optional[list[PreparedPhoto]], fit: CameraFit) -> tuple[MetaImage, Optional[list[PreparedPhoto]]]:
-    """`meta` and its prepared `photos` (if any) with the focal lengths and poses of `fit`."""
+    """`meta` and its prepared `photos` (if any) with the focal lengths, poses and radial distortion of `fit`; with a new
+    distortion the photos are not returned (None): they must be undistorted again (`prepare_photos`)."""
     factors = {photo.name: fit.focal_scales[photo.name] / photo.focal_scale for photo in meta.photos if photo.name in fit.focal_scales}
-    meta = meta.with_focal_scales(fit.focal_scales).with_poses(fit.poses)
-    return meta, with_camera_changes(photos, factors, fit.poses) if photos is not None else None
+    meta = meta.with_focal_scales(fit.focal_scales).with_poses(fit.poses).with_radial_distortion(fit.radial_k1)
+    if photos is None or fit.radial_k1:
+        return meta, None
+    return meta, with_camera_changes(photos, factors, fit.poses)
 
 
 def pose_corrections(given: MetaImage, moved: MetaImage, camera_shift: Sim3, world_per_meta: float, names: set[str]) -> dict[str, dict[str, float]]:

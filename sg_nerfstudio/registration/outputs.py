@@ -5,8 +5,10 @@
                      final trimmed loss, steps, wall time, settings, the optimised hypotheses (if any), per
                      photo its losses, the focal_scale it was rendered with and (with `refine_photo_poses`) its
                      pose_correction: how far its camera was moved from where the Sim(3) puts it (null: not moved)
-    aligned/         the meta-image's COLMAP model moved into the reference world frame (focal lengths as the
-                     registration refined them, with `refine_focal`; its photos' poses moved rigidly)
+                     and (with `refine_distortion`) its camera's radial_k1 (null: as the SfM found it)
+    aligned/         the meta-image's COLMAP model moved into the reference world frame (focal lengths and k1 as
+                     the registration refined them, with `refine_focal` / `refine_distortion`; its photos' poses
+                     moved rigidly)
     losses.csv       per step and photo: loss, whether LTS kept it, its weight, the stage (coarse-<size> | main)
     report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (before | after, each titled; top
                      half: reference model rendered at the photo's pose, bottom half: the photo; labelled)
@@ -50,7 +52,7 @@ def write_outputs(
     overwrite: bool = False,
 ) -> Path:
     """Write all outputs into `target` (created atomically via a temporary sibling)."""
-    meta = meta.with_focal_scales(result.focal_scales)  # the intrinsics the registration rendered with
+    meta = meta.with_focal_scales(result.focal_scales).with_radial_distortion(result.radial_k1)  # the intrinsics it rendered with
     with atomic_directory(target, overwrite=overwrite) as staging:
         _write_transform(staging, reference, meta, result)
         _write_aligned_model(staging / "aligned", meta, result.transform)
@@ -67,6 +69,7 @@ def write_outputs(
 
 def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage, result: RegistrationResult) -> None:
     record = result.transform.as_record()
+    camera_of = {photo.name: int(photo.camera.camera_id) for photo in meta.photos}
     record.update({
         "initial": result.initial_transform.as_record(),
         "verdict": result.verdict.label,
@@ -85,7 +88,8 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
         "settings": result.settings,
         "photos": [
             {"name": n, "initial_loss": float(a), "final_loss": float(b), "ignored_fraction": float(c), "initial_coverage": float(d),
-             "focal_scale": result.focal_scales.get(n, 1.0), "pose_correction": result.pose_corrections.get(n)}
+             "focal_scale": result.focal_scales.get(n, 1.0), "pose_correction": result.pose_corrections.get(n),
+             "radial_k1": result.radial_k1.get(camera_of.get(n, -1))}
             for n, a, b, c, d in zip(result.photo_names, result.initial_losses, result.final_losses, result.ignored_fraction, result.coverage)
         ],
     })

@@ -29,7 +29,7 @@ from rich.table import Table
 from rich.text import Text
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
+from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image, radial_k1_index
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
@@ -246,6 +246,10 @@ def register_one(
     if result.focal_scales:
         scales = sorted(result.focal_scales.values())
         console.print(f"{meta.name}: focal lengths of {len(scales)} photos refined by x{scales[0]:.3f} to x{scales[-1]:.3f} (transform.json, aligned/).")
+    if result.radial_k1:
+        before = {int(p.camera.camera_id): p.camera for p in meta.photos}
+        changes = sorted(value - float(before[camera_id].params[radial_k1_index(before[camera_id])]) for camera_id, value in result.radial_k1.items())
+        console.print(f"{meta.name}: radial distortion k1 of {len(changes)} cameras refined by {changes[0]:+.3f} to {changes[-1]:+.3f} (transform.json, aligned/).")
     if result.pose_corrections:
         turns = sorted(c["rotation_deg"] for c in result.pose_corrections.values())
         console.print(f"{meta.name}: cameras of {len(turns)} photos moved within the meta-image by {turns[0]:.2f}° to {turns[-1]:.2f}° (transform.json).")
@@ -295,8 +299,8 @@ def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optio
             not_merged[outcome.meta.name] = "verdict failed: " + "; ".join(outcome.result.verdict.reasons)
         else:
             transform = outcome.result.transform
-            focal_scales = outcome.meta.with_focal_scales(outcome.result.focal_scales).camera_focal_scales()
-            parts.append(MergePart(outcome.meta.name, aligned_reconstruction(outcome.meta.reconstruction, transform, focal_scales), transform))
+            refined = outcome.meta.with_focal_scales(outcome.result.focal_scales).with_radial_distortion(outcome.result.radial_k1)
+            parts.append(MergePart(outcome.meta.name, aligned_reconstruction(refined.reconstruction, transform, refined.camera_focal_scales()), transform))
     if not any(part.transform is not None for part in parts):
         console.print(f"[yellow]No meta-image was registered with a verdict other than failed, so {target} is not written.[/yellow]")
         return

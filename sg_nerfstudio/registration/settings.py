@@ -133,6 +133,12 @@ class RegistrationSettings:
     (`geometry.alignment.align_cameras`), and transform.json records each photo's correction. For SfM models of a few
     photos whose relative poses are a fraction of a degree off (README "Per-photo poses"); off = the meta-image is one
     rigid body (the paper)."""
+    refine_distortion: bool = False
+    """In the same joint fit, the first radial distortion coefficient k1 of each COLMAP camera of the photos with keypoints
+    (models SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV), held by the meta-image SfM's own uncertainty of it; the keypoints'
+    rays are undistorted again with the fitted focal length and k1, every later stage renders against the photos
+    undistorted with it, transform.json and the aligned model carry it. A 3-photo SfM can get k1 a few hundredths off
+    (README "Other splits and looks of the same real photos"); off = the SfM's distortion as it is (the paper)."""
     photo_pose_prior_scale: float = 1.0
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
     camera_fit_iterations: int = 1000

@@ -195,8 +195,8 @@ def relative_focal_uncertainty(reconstruction: pycolmap.Reconstruction) -> dict[
 
 def intrinsics_uncertainty(reconstruction: pycolmap.Reconstruction) -> tuple[dict[int, float], dict[int, float]]:
     """({camera id: sigma_f / f} as `relative_focal_uncertainty`, {camera id: standard deviation of k1} for the cameras
-    of RADIAL_MODELS) from one covariance of the model's bundle adjustment. The 3-photo models of real photos give
-    0.04-0.24 for k1, synthetic meta-images of 8-16 photos 0.004-0.01."""
+    of RADIAL_MODELS) from one covariance of the model's bundle adjustment. The models of 3-5 real photos give
+    0.02-0.27 for k1, synthetic meta-images of 8-16 photos 0.004-0.01."""
     model = pycolmap.Reconstruction(reconstruction)  # the adjuster holds pointers into it: a copy, left untouched
     covariance = _sfm_covariance(model, pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)  # minimal (7 dof); three fixed points are not
     if covariance is None:

@@ -133,6 +133,38 @@ def test_noise_table_names_the_preset_each_run_was_made_with():
     ]
 
 
+def test_start_precision_table_counts_refinements_further_than_their_start_beyond_the_truths_residual(tmp_path):
+    """Issue 19 §1 by bands of the start's ΔR: further than the start at all, and by more than gt_transform.json's residual."""
+    from sg_nerfstudio.bench.layout import read_meta
+    from sg_nerfstudio.bench.report import start_precision_table
+
+    meta = tmp_path / "m"
+    meta.mkdir()
+    (meta / "gt_transform.json").write_text(json.dumps({"matrix": np.eye(4).tolist(), "residual_rotation_deg": [0.3, 0.4], "residual_centre": [0.0, 0.02]}))
+    residual = read_meta(meta).truth_residual
+    assert residual["dR"] == pytest.approx(np.sqrt(0.125)) and residual["dT"] == pytest.approx(np.sqrt(0.0002))
+    (meta / "gt_transform.json").write_text(json.dumps({"matrix": np.eye(4).tolist()}))
+    assert read_meta(meta).truth_residual is None
+
+    def record(before, after, truth=None, run="colmap"):
+        return {"family": "table1", "run": run, "start": "colmap", "mode": "", "truth_residual": truth,
+                "before": {"dR": before[0], "dT": before[1]}, "after": {"dR": after[0], "dT": after[1]}}
+
+    records = [
+        record((0.06, 0.077), (0.28, 0.023), {"dR": 0.21, "dT": 0.013}),  # further in ΔR, by more than the residual
+        record((0.43, 0.011), (0.44, 0.013), {"dR": 0.15, "dT": 0.012}),  # further in both, within the residual
+        record((0.30, 0.010), (0.302, 0.0104)),  # under the printed precision: not further
+        record((0.50, 0.010), (0.60, 0.020)),  # no residual known (synthetic): any change counts
+        record((2.00, 0.100), (0.50, 0.010)),
+        {**record((9.0, 0.3), (0.5, 0.01)), "after": None},  # a registration error: not counted
+    ]
+    assert start_precision_table(records, ("colmap", "generalized"))[2:] == [
+        "| colmap | < 1° | 4 | 3 | 2 | 2 | 1 |",
+        "| colmap | 1-5° | 1 | 0 | 0 | 0 | 0 |",
+    ]
+    assert start_precision_table([], ("colmap",)) == []
+
+
 def test_photo_loss_separation_is_the_auc_of_the_ratios():
     assert separation(np.array([1.3, 1.4]), np.array([0.9, 1.0])) == 1.0
     assert separation(np.array([0.9, 1.0]), np.array([1.3, 1.4])) == 0.0

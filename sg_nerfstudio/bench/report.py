@@ -130,6 +130,45 @@ def _transition(record: Optional[dict]) -> str:
     return f"{before} -> {record['after']['dR']:.2f}° / {record['after']['dT']:.3f}"
 
 
+START_BANDS_DEG = ((0.0, 1.0), (1.0, 5.0), (5.0, float("inf")))
+"""Bands of the start's ΔR for `start_precision_table`: the registration should end no worse than a start already within
+1° and improve one between 1° and 5°."""
+PRINTED_PRECISION = {"dR": 0.005, "dT": 0.0005}
+"""A change smaller than what the per-meta-image table prints (0.01° / 0.001 rounded) does not count as further."""
+
+
+def start_precision_table(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
+    """Per initialiser start (and `--compare-config` preset) and band of the start's ΔR: how many refinements end
+    further from the truth than their start, in ΔR and in ΔT, and how many of those by more than the ground truth's
+    own residual (`BenchmarkMeta.truth_residual`, 0 where the scene gives none)."""
+    lines = [
+        "| start | start ΔR | starts | ΔR further | by more than the truth's residual | ΔT further | by more than the truth's residual |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for init in initialisers:
+        for mode in _table1_modes(records, init):
+            runs = [r for r in records if r["family"] == "table1" and r["run"] == _table1_run(init, mode) and r["before"] and r["after"]]
+            for low, high in START_BANDS_DEG:
+                band = [r for r in runs if low <= r["before"]["dR"] < high]
+                if band:
+                    name = init if not mode else f"{init}, {mode}"
+                    counts = [f"{sum(_further(r, key, 0.0) for r in band)} | {sum(_further(r, key, None) for r in band)}" for key in ("dR", "dT")]
+                    lines.append(f"| {name} | {_band_label(low, high)} | {len(band)} | " + " | ".join(counts) + " |")
+    return lines if len(lines) > 2 else []
+
+
+def _further(record: dict, key: str, allowance: Optional[float]) -> bool:
+    """Whether the refinement ended further than its start in `key` by more than the printed precision, plus
+    `allowance` (None: the ground truth's own residual in that key)."""
+    if allowance is None:
+        allowance = (record.get("truth_residual") or {}).get(key, 0.0)
+    return record["after"][key] - record["before"][key] > PRINTED_PRECISION[key] + allowance
+
+
+def _band_label(low: float, high: float) -> str:
+    return f"< {high:g}°" if low == 0 else (f"≥ {low:g}°" if high == float("inf") else f"{low:g}-{high:g}°")
+
+
 def ablation_table(records: list[dict]) -> list[str]:
     rows: dict[str, list[dict]] = defaultdict(list)
     for r in records:
@@ -233,6 +272,13 @@ def write_results(output: Path, records: list[dict], initialisers: tuple[str, ..
         "## MTA and O% over other thresholds (ΔR °, ΔT)", "", *threshold_sweeps(records, initialisers), "",
         "## Per meta-image (ΔR / ΔT before -> after)", "", *per_meta(records, initialisers), "",
     ]
+    precision = start_precision_table(records, initialisers)
+    if precision:
+        sections += [
+            "## Ended further than the start (initialiser starts)", "",
+            "Changes under the printed precision (0.005°, 0.0005) do not count; the truth's residual is the RMS per-camera residual of "
+            "the ground-truth alignment (gt_transform.json; 0 where the scene gives none).", "", *precision, "",
+        ]
     ablations = ablation_table(records)
     if ablations:
         sections += ["## Ablations (from the perturbed start)", "", *ablations, ""]

@@ -183,6 +183,7 @@ class SceneRunner:
             "start": spec.start, "label": spec.label, "init_failure": failure, "init_time_s": time.perf_counter() - started,
             "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0, "mode": spec.mode,
             "preset": spec.mode or self.options.preset, "verdict": None,
+            "truth_residual": meta.truth_residual if not spec.subset_size else None,
         }
         poses = subject.poses
         if start is not None:

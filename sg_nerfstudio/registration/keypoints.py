@@ -31,7 +31,9 @@ spreads that error into the Sim(3). With `refine_distortion` it also fits each c
 keypoints of those cameras then compared in the distorted photo (`KeypointTerm.distorted_errors`), and later stages
 compare renders with the photos undistorted again with it. Later stages render the moved cameras, and the registration reports the Sim(3)
 that maps the meta-image's own cameras onto the moved ones (`geometry.alignment.align_cameras`, the rule the ground
-truth of the benchmarks is made by) composed with the final one.
+truth of the benchmarks is made by) composed with the final one. Once photos were moved, the stages after the fit
+weigh the keypoints with the fit's narrow kernel (`Anchoring.narrow`): under the wider `KERNEL_CELLS` the keypoints a
+pixel or two off that the fit discounted pull the Sim(3) away from where the fit left it.
 
 Frames: keypoints are pixels of the original (distorted) photo, COLMAP convention, undistorted here once with
 the photo's pycolmap camera to normalised image coordinates; points are in the *reference world* frame (the
@@ -67,7 +69,9 @@ FIT_KERNEL_FRACTION = 1 / 160
 """Scale of the Cauchy kernel while photos' poses are fitted (`refine_photo_poses`), as a fraction of the photo's long
 side (4 px of a 640-px photo, 0.2 teacher cells at 32): near SIFT's localisation error, so that a photo's pose follows
 its well-located keypoints rather than the few-pixel errors RANSAC still let through; the wider `KERNEL_CELLS` would
-let those pull each free photo its own way."""
+let those pull each free photo its own way. The stages after such a fit keep this kernel (`Anchoring.narrow`): with
+`KERNEL_CELLS` there the same errors moved the Sim(3) of a real 3-photo meta-image (Sceaux 100_7101-100_7104) from
+0.10° to 0.28° from the truth, whatever the keypoint weight (10, 30 or 1000)."""
 MIN_DEPTH = 1e-6
 """Points at or behind a camera (under the current transform) carry no keypoint term for that step."""
 
@@ -261,23 +265,33 @@ class Anchoring:
     `KeypointTerm` on that stage's teacher grid, weighted by `keypoint_weight` x the stage's dense objective at
     its start (`start_value`). Empty (falsy) when the settings' weight is 0 or no photo has keypoints."""
 
-    def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, weight: float):
+    def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, weight: float, narrow: bool = False):
         self.meta, self.keypoints, self.world_to_dataparser, self.weight = meta, keypoints, world_to_dataparser, float(weight)
+        self.narrow = narrow
+        """Whether stages weigh the keypoints with the camera fit's kernel (FIT_KERNEL_FRACTION of the long side) rather
+        than KERNEL_CELLS: once photos were moved to fit their keypoints under it (`for_meta(..., narrow=True)`)."""
 
     def __bool__(self) -> bool:
         return self.weight > 0 and any(len(k.points2D) for k in self.keypoints)
 
-    def term(self, grid_size: int, start_value: float, kernel: float = KERNEL_CELLS) -> Optional[KeypointTerm]:
+    def term(self, grid_size: int, start_value: float, kernel: Optional[float] = None) -> Optional[KeypointTerm]:
+        """The stage's keypoint term; `kernel` (teacher cells) defaults to this anchoring's (`narrow`)."""
         if not self:
             return None
-        return KeypointTerm(self.meta, self.keypoints, self.world_to_dataparser, grid_size, self.weight * float(start_value), kernel)
+        weight = self.weight * float(start_value)
+        if kernel is None and self.narrow:
+            # The narrow kernel with the wide one's curvature at zero error: well-located keypoints hold the pose as
+            # firmly as before, the near misses beyond the narrow kernel pull less.
+            kernel = FIT_KERNEL_FRACTION * grid_size
+            weight *= (kernel / KERNEL_CELLS) ** 2
+        return KeypointTerm(self.meta, self.keypoints, self.world_to_dataparser, grid_size, weight, KERNEL_CELLS if kernel is None else kernel)
 
     def prealign(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> Sim3:
         """The keypoint term alone minimised from `start` (numpy Sim3, meta -> dataparser): Adam on delta about
         `centre` [3] for `steps` steps, learning rate 0.02 decaying to 0.0005. No render is involved (a few
         milliseconds a step), so a start far from the answer reaches the keypoints' own optimum before the dense
         objective, whose basin is a few cells wide, takes over. Returns `start` without keypoints."""
-        term = self.term(grid_size, 1.0)
+        term = self.term(grid_size, 1.0, KERNEL_CELLS)
         if not term or steps <= 0:
             return start
         return minimise_keypoint_term(term, start, centre, steps)
@@ -350,9 +364,9 @@ class Anchoring:
             for name, sigma in relative_rotation_uncertainty(self.meta.reconstruction).items() if name in sides
         }
 
-    def for_meta(self, meta: MetaImage) -> "Anchoring":
-        """The same keypoints for `meta` (e.g. its photos with new focal scales)."""
-        return Anchoring(meta, self.keypoints, self.world_to_dataparser, self.weight)
+    def for_meta(self, meta: MetaImage, narrow: Optional[bool] = None) -> "Anchoring":
+        """The same keypoints for `meta` (e.g. its photos with new focal scales); `narrow` as this one's unless given."""
+        return Anchoring(meta, self.keypoints, self.world_to_dataparser, self.weight, self.narrow if narrow is None else narrow)
 
     def cost(self, term: Optional[KeypointTerm], meta_to_dataparser: Sim3) -> float:
         """The term's value under a numpy Sim3 (0 without a term)."""

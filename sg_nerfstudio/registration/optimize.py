@@ -205,7 +205,7 @@ def register(
         fit = keypoint_prealignment(anchor, meta, initial_ns, settings, objective.teacher.grid_size)
         current = fit.transform
         meta, photos = with_fitted_cameras(meta, photos, fit)
-        anchor = anchor.for_meta(meta)
+        anchor = anchor.for_meta(meta, narrow=True if fit.poses else None)  # the moved photos fit their keypoints under the narrow kernel
     camera_shift = align_cameras(np.stack(given.poses), np.stack(meta.poses)).transform if fit.poses else Sim3.identity()
     photos = photos if photos is not None else prepare_photos(reference, meta, settings, objective)
     main_steps, main_lr = main_schedule(settings, prealigned)

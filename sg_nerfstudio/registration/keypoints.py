@@ -52,6 +52,7 @@ from torch import Tensor
 from sg_nerfstudio.geometry.meta_image import MetaImage, intrinsics_uncertainty, radial_k1_index, relative_rotation_uncertainty
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+from sg_nerfstudio.registration.least_squares import RobustResiduals, levenberg_marquardt
 
 KERNEL_CELLS = 0.5
 """Scale c of the Cauchy kernel in teacher cells (16 px of a 1024-px photo at a 32-cell grid): about the
@@ -64,7 +65,8 @@ MAX_K1_CHANGE = 0.2
 fit is dropped whole. Real lenses' k1 lies within about +-0.3; the 3-photo models' SfM put it 0.03-0.18 off."""
 MAX_POSE_CHANGE_DEG = 2.0
 """A photo's fitted pose correction (`refine_photo_poses`) beyond this rotation, or beyond a centre shift that moves its
-scene as much (its median point depth times the angle), is not believed: the camera fit is dropped whole."""
+scene as much (its median point depth times the angle) plus the depth change its focal change implies (`plausible`), is
+not believed: the camera fit is dropped whole."""
 FIT_KERNEL_FRACTION = 1 / 160
 """Scale of the Cauchy kernel while photos' poses are fitted (`refine_photo_poses`), as a fraction of the photo's long
 side (4 px of a 640-px photo, 0.2 teacher cells at 32): near SIFT's localisation error, so that a photo's pose follows
@@ -138,7 +140,15 @@ class KeypointTerm:
         self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None, pose_corrections: Optional[Tensor] = None,
         k1_delta: Optional[Tensor] = None,
     ) -> tuple[Tensor, Tensor]:
-        """[M] reprojection errors in teacher cells and [M] bool in front of the camera, under a torch Sim3 and, with
+        """[M] reprojection errors (lengths, teacher cells) and [M] bool in front of the camera: `error_vectors`' lengths."""
+        error, in_front = self.error_vectors(meta_to_dataparser, log_focal, pose_corrections, k1_delta)
+        return torch.sqrt((error**2).sum(-1) + 1e-18), in_front
+
+    def error_vectors(
+        self, meta_to_dataparser: Sim3, log_focal: Optional[Tensor] = None, pose_corrections: Optional[Tensor] = None,
+        k1_delta: Optional[Tensor] = None,
+    ) -> tuple[Tensor, Tensor]:
+        """[M, 2] reprojection errors in teacher cells and [M] bool in front of the camera, under a torch Sim3 and, with
         `log_focal` [G], each COLMAP camera's focal lengths times exp(log_focal) on top of the photos' `focal_scale`;
         with `pose_corrections` [P', 6] each photo's camera moved (`corrected_rotations_and_centres`); with `k1_delta`
         [G] each camera's first radial coefficient changed by it, the keypoints of cameras of RADIAL_MODELS are compared
@@ -160,7 +170,7 @@ class KeypointTerm:
             lens = self.intrinsics[:, 8] > 0  # keypoints of cameras with a radial model
             distorted = self.distorted_errors(projected, scales[self.photo], k1_delta[self.camera_of][self.photo])
             error = torch.where(lens[:, None], distorted, error)
-        return torch.sqrt((error**2).sum(-1) + 1e-18), in_front
+        return error, in_front
 
     def distorted_errors(self, projected: Tensor, focal_scale: Tensor, k1_change: Tensor) -> Tensor:
         """[M, 2] keypoint errors in cells of the distorted photo: `projected` [M, 2] (normalised, undistorted) distorted
@@ -180,12 +190,19 @@ class KeypointTerm:
         (`FreeCameras`: focal scales and / or pose corrections and their priors) each photo's mean also counts one
         pseudo-observation per prior: (log focal scale of its camera / its sigma)^2, sum((its correction / its
         sigma)^2)."""
+        return self.robust_residuals(meta_to_dataparser, free).cost()
+
+    def robust_residuals(self, meta_to_dataparser: Sim3, free: Optional["FreeCameras"] = None) -> RobustResiduals:
+        """The term as `least_squares.RobustResiduals` (its `cost()` is the term's value): the keypoints' error vectors
+        over the kernel [M, 2], each weighted by weight / (photos x (its photo's keypoints + priors)) (0 behind the camera),
+        and the priors' residuals with the square root of their photo's weight."""
         free = free or FreeCameras()
-        errors, in_front = self.residuals(meta_to_dataparser, free.log_focal, free.pose_corrections, free.k1_delta)
-        cost = torch.where(in_front, torch.log1p((errors / self.kernel) ** 2), torch.zeros_like(errors))
-        total = torch.zeros(self.photos, dtype=cost.dtype).index_add(0, self.photo, cost)
-        priors = free.priors(self.camera_of)
-        return self.weight * ((total + sum(priors)) / (self.counts + len(priors))).mean()
+        error, in_front = self.error_vectors(meta_to_dataparser, free.log_focal, free.pose_corrections, free.k1_delta)
+        priors = free.prior_residuals(self.camera_of)  # [P', k] each
+        per_photo = self.weight / (self.photos * (self.counts + len(priors)))  # [P']
+        weights = torch.where(in_front, per_photo[self.photo], torch.zeros_like(per_photo[self.photo]))
+        quadratic = [(prior * per_photo.sqrt()[:, None]).reshape(-1) for prior in priors]
+        return RobustResiduals(error / self.kernel, weights, torch.cat(quadratic) if quadratic else error.new_zeros(0))
 
     def pose_sigma(self, rotation_deg: dict[str, float]) -> Optional[Tensor]:
         """[P', 6] prior standard deviations of the pose corrections (radians for the rotation, meta units for the centre
@@ -222,16 +239,18 @@ class FreeCameras:
     k1_delta: Optional[Tensor] = None
     k1_sigma: Optional[Tensor] = None
 
-    def priors(self, camera_of: Tensor) -> list[Tensor]:
-        """One [P'] pseudo-observation cost per free kind (`camera_of` [P']: each photo's index into the cameras)."""
+    def prior_residuals(self, camera_of: Tensor) -> list[Tensor]:
+        """Per free kind, [P', k] residuals whose squares summed over k are one photo's pseudo-observation cost of that
+        kind (`camera_of` [P']: each photo's index into the cameras): its camera's log focal scale / sigma, its camera's k1
+        change / sigma, its pose correction / sigma (0 for photos not moved)."""
         out = []
         if self.log_focal is not None:
-            out.append(((self.log_focal / self.focal_sigma) ** 2)[camera_of])
+            out.append((self.log_focal / self.focal_sigma)[camera_of, None])
         if self.k1_delta is not None:
-            out.append(((self.k1_delta / self.k1_sigma) ** 2)[camera_of])
+            out.append((self.k1_delta / self.k1_sigma)[camera_of, None])
         if self.pose_corrections is not None:
             held = self.pose_sigma > 0  # photos not moved: no correction, no prior
-            out.append(torch.where(held, self.pose_corrections / torch.where(held, self.pose_sigma, torch.ones_like(self.pose_sigma)), 0.0).pow(2).sum(-1))
+            out.append(torch.where(held, self.pose_corrections / torch.where(held, self.pose_sigma, torch.ones_like(self.pose_sigma)), 0.0))
         return out
 
 
@@ -332,7 +351,7 @@ class Anchoring:
         if fitted is None:
             return CameraFit(start)
         moved, free = fitted
-        if not plausible(free):
+        if not plausible(free, term.camera_of):
             return CameraFit(start)  # the Sim(3) was fitted with those cameras: neither is kept
         fit = CameraFit(moved)
         if free.log_focal is not None:
@@ -422,50 +441,47 @@ def fit_jointly(
     focal: Optional[tuple[Tensor, Tensor]] = None, pose_sigma: Optional[Tensor] = None,
     k1: Optional[tuple[Tensor, Tensor]] = None,
 ) -> Optional[tuple[Sim3, FreeCameras]]:
-    """L-BFGS (strong Wolfe line search, at most `iterations`) on delta [7] about `centre` and, with `focal` ([G] prior
-    sigmas, [G] bool free), the log focal scales of the term's cameras marked free, with `pose_sigma` [P', 6] the photos'
-    pose corrections (in units of their prior), with `k1` ([G] prior sigmas, [G] bool free) the changes of the cameras'
-    first radial coefficients, each under its prior: (the numpy Sim3 meta -> dataparser, the fitted `FreeCameras`,
-    focal scales and k1 changes 0 where not free); None when the optimisation diverged. From a pre-aligned start the
-    problem is smooth and small (7 + G + 6 P' parameters) but ill-conditioned (a common turn of every photo against the
-    Sim(3), focal length against depth): with a fixed 1° pose prior, Adam needed 4000 steps (8 s for 3 photos) where this
-    needs 1000 iterations (2.3 s) for the same result within 0.001° on the real-photo meta-images."""
+    """Levenberg-Marquardt (`least_squares.levenberg_marquardt`, at most `iterations`) on delta [7] about `centre` and,
+    with `focal` ([G] prior sigmas, [G] bool free), the log focal scales of the term's cameras marked free, with
+    `pose_sigma` [P', 6] the photos' pose corrections (in units of their prior), with `k1` ([G] prior sigmas, [G] bool
+    free) the changes of the cameras' first radial coefficients, each under its prior: (the numpy Sim3 meta ->
+    dataparser, the fitted `FreeCameras`, focal scales and k1 changes 0 where not free); None when the optimisation
+    diverged. From a pre-aligned start the problem is smooth and small (7 + G + 6 P' + G parameters) but
+    ill-conditioned (a common turn of every photo against the Sim(3), focal length against depth): L-BFGS had not
+    converged in 1000 iterations on the real-photo meta-images, and its end point moved with the last digits of the
+    priors (README "The camera fit, solved by Levenberg-Marquardt")."""
     base = start.to_torch()
     centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
-    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-    log_focal = torch.zeros(len(term.camera_ids), dtype=torch.float64, requires_grad=focal is not None)
-    corrections = torch.zeros(term.photos, 6, dtype=torch.float64, requires_grad=pose_sigma is not None)
-    k1_delta = torch.zeros(len(term.camera_ids), dtype=torch.float64, requires_grad=k1 is not None)
+    cameras, photos = len(term.camera_ids), term.photos
+    sizes = [7, cameras if focal is not None else 0, 6 * photos if pose_sigma is not None else 0, cameras if k1 is not None else 0]
 
-    def cameras() -> FreeCameras:
-        return FreeCameras(
+    def unpack(x: Tensor) -> tuple[Tensor, FreeCameras]:
+        delta, log_focal, corrections, k1_delta = torch.split(x, sizes)
+        return delta, FreeCameras(
             log_focal * focal[1].double() if focal is not None else None, focal[0] if focal is not None else None,
-            corrections * pose_sigma if pose_sigma is not None else None, pose_sigma,
+            corrections.reshape(photos, 6) * pose_sigma if pose_sigma is not None else None, pose_sigma,
             k1_delta * k1[1].double() if k1 is not None else None, k1[0] if k1 is not None else None,
         )
 
-    optimizer = torch.optim.LBFGS(
-        [delta] + [t for t in (log_focal, corrections, k1_delta) if t.requires_grad], lr=1.0, max_iter=iterations, history_size=20,
-        tolerance_grad=1e-12, tolerance_change=1e-15, line_search_fn="strong_wolfe",
-    )
+    def residuals(x: Tensor) -> RobustResiduals:
+        delta, free = unpack(x)
+        return term.robust_residuals(Sim3.update(delta, centre_t) @ base, free)
 
-    def closure() -> Tensor:
-        optimizer.zero_grad()
-        value = term(Sim3.update(delta, centre_t) @ base, cameras())
-        value.backward()
-        return value
-
-    optimizer.step(closure)
-    if not all(bool(torch.isfinite(t).all()) for t in (delta, log_focal, corrections, k1_delta)):
+    solution = levenberg_marquardt(residuals, torch.zeros(sum(sizes), dtype=torch.float64), iterations)
+    if not bool(torch.isfinite(solution.x).all()):
         return None
-    with torch.no_grad():
-        return (Sim3.update(delta, centre_t) @ base).numpy(), cameras()
+    delta, free = unpack(solution.x)
+    return (Sim3.update(delta, centre_t) @ base).numpy(), free
 
 
-def plausible(free: FreeCameras) -> bool:
+def plausible(free: FreeCameras, camera_of: Tensor) -> bool:
     """Whether fitted cameras are within MAX_FOCAL_CHANGE (focal scales), MAX_K1_CHANGE (radial coefficients) and
-    MAX_POSE_CHANGE_DEG (pose corrections; the centre shift compared with the photo's median point depth times that
-    angle)."""
+    MAX_POSE_CHANGE_DEG (pose corrections; `camera_of` [P'] each photo's index into the cameras). A photo's centre
+    shift is compared with its median point depth times that angle plus the depth change its camera's focal change
+    implies (depth x |log focal scale|): a photo whose SfM focal length was wrong by some percent stood as many percent
+    nearer or farther from a facade in the SfM, and the fit must move it by that much to keep its image (Strecha
+    fountain 0005, SfM focal length 11% long: the fit's 6% shorter focal length and 6% shift were refused with the
+    angle alone)."""
     if free.log_focal is not None and bool((free.log_focal.abs() > np.log1p(MAX_FOCAL_CHANGE)).any()):
         return False
     if free.k1_delta is not None and bool((free.k1_delta.abs() > MAX_K1_CHANGE).any()):
@@ -473,7 +489,10 @@ def plausible(free: FreeCameras) -> bool:
     if free.pose_corrections is not None:
         limit = np.radians(MAX_POSE_CHANGE_DEG)
         turn, shift = free.pose_corrections[:, :3].norm(dim=1), free.pose_corrections[:, 3:].norm(dim=1)
-        # shift > depth x limit, with depth = centre sigma / rotation sigma (`KeypointTerm.pose_sigma`); 0 > 0 where not moved
-        if bool((turn > limit).any() or (shift * free.pose_sigma[:, 0] > limit * free.pose_sigma[:, 3]).any()):
+        depth_change = free.log_focal.abs()[camera_of] if free.log_focal is not None else torch.zeros_like(turn)
+        # depth = centre sigma / rotation sigma (`KeypointTerm.pose_sigma`), so shift > depth x allowance reads as below;
+        # photos not moved have sigma 0 and shift 0: 0 > 0 is False
+        allowance = limit + depth_change
+        if bool((turn > limit).any() or (shift * free.pose_sigma[:, 0] > allowance * free.pose_sigma[:, 3]).any()):
             return False
     return True

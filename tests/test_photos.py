@@ -152,6 +152,31 @@ def test_strecha_camera_file(tmp_path):
         read_strecha_camera(path)
 
 
+def test_ground_truth_cameras_turned_to_the_sfm_principal_point():
+    """A calibrated camera whose principal point is off the image centre (as Strecha's fountain-P11: 15 / 17 px of 3072),
+    turned to the centred principal point an SfM holds: the scene point the true camera sees at the image centre is
+    seen there by the turned camera with the centred intrinsics, points near it within a tenth of a pixel, the centre
+    does not move, and the turn is the offset's angle; with the principal points equal nothing changes."""
+    from sg_nerfstudio.photos.scene import at_principal_point_of, principal_point_turn_deg
+
+    true_camera = pycolmap.Camera(model="PINHOLE", width=640, height=427, params=[575.0, 576.0, 316.8, 209.8])
+    sfm_camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=640, height=427, params=[575.0, 320.0, 213.5, 0.0])
+    pose = Sim3.random(np.random.default_rng(2), 90.0, 3.0, 0.0).matrix[:3]
+    turned = at_principal_point_of(pose, true_camera, sfm_camera)
+    centred = pycolmap.Camera(model="PINHOLE", width=640, height=427, params=[575.0, 576.0, 320.0, 213.5])
+    centre = -pose[:, :3].T @ pose[:, 3]
+    np.testing.assert_allclose(-turned[:, :3].T @ turned[:, 3], centre, atol=1e-12)
+    pixels = np.array([[320.0, 213.5], [330.0, 220.0], [300.0, 200.0]])
+    rays = np.column_stack([true_camera.cam_from_img(pixels), np.ones(3)])
+    points = (pose[:, :3].T @ (10.0 * rays).T).T + centre  # world points 10 units along the true camera's rays
+    seen = centred.img_from_cam((turned[:, :3] @ points.T).T + turned[:, 3])
+    np.testing.assert_allclose(seen[0], pixels[0], atol=1e-9)
+    assert np.abs(seen - pixels).max() < 0.1
+    offset = np.hypot(np.arctan(3.2 / 575.0), np.arctan(3.7 / 576.0))
+    assert abs(np.radians(principal_point_turn_deg(pose, turned)) - offset) < 1e-5
+    np.testing.assert_allclose(at_principal_point_of(pose, centred, sfm_camera), pose, atol=1e-12)
+
+
 def test_split_along_the_path():
     names = [f"{i:02d}" for i in range(11)]
     reference, metas = split_photos(names, 2, 3)
@@ -195,6 +220,10 @@ def test_real_scene_builder_writes_the_bench_layout(photo_scene, photos, tmp_pat
         assert meta["written"], meta
         # the SfM cameras of the meta-image, moved by the ground truth, are the given cameras to SfM precision
         assert meta["gt_residual_rotation_deg_max"] < 1.0
+        truth_record = json.loads((output / meta["path"] / "gt_transform.json").read_text())
+        # the given cameras are the generator's with the SfM's centred principal point: no turn, the plain alignment
+        assert max(truth_record["principal_point_turn_deg"]) < 1e-6
+        np.testing.assert_allclose(truth_record["given_principal_point"]["matrix"], truth_record["matrix"], atol=1e-9)
     truth = scene.metas[0].ground_truth
     assert 0 < truth.scale and np.isfinite(np.asarray(truth)).all()
     assert not (output / "work").exists()

@@ -157,7 +157,8 @@ def test_ground_truth_cameras_turned_to_the_sfm_principal_point():
     turned to the centred principal point an SfM holds: the scene point the true camera sees at the image centre is
     seen there by the turned camera with the centred intrinsics, points near it within a tenth of a pixel, the centre
     does not move, and the turn is the offset's angle; with the principal points equal nothing changes."""
-    from sg_nerfstudio.photos.scene import at_principal_point_of, principal_point_turn_deg
+    from sg_nerfstudio.geometry.sim3 import rotation_angle_deg
+    from sg_nerfstudio.photos.scene import at_principal_point_of
 
     true_camera = pycolmap.Camera(model="PINHOLE", width=640, height=427, params=[575.0, 576.0, 316.8, 209.8])
     sfm_camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=640, height=427, params=[575.0, 320.0, 213.5, 0.0])
@@ -173,7 +174,7 @@ def test_ground_truth_cameras_turned_to_the_sfm_principal_point():
     np.testing.assert_allclose(seen[0], pixels[0], atol=1e-9)
     assert np.abs(seen - pixels).max() < 0.1
     offset = np.hypot(np.arctan(3.2 / 575.0), np.arctan(3.7 / 576.0))
-    assert abs(np.radians(principal_point_turn_deg(pose, turned)) - offset) < 1e-5
+    assert abs(np.radians(rotation_angle_deg(turned[:, :3] @ pose[:, :3].T)) - offset) < 1e-5
     np.testing.assert_allclose(at_principal_point_of(pose, centred, sfm_camera), pose, atol=1e-12)
 
 

@@ -46,6 +46,7 @@ from scipy.spatial.transform import Rotation
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.alignment import CameraAlignment, align_cameras, camera_centres
+from sg_nerfstudio.geometry.sim3 import rotation_angle_deg
 from sg_nerfstudio.initialisers.features import MatchSettings, SiftExtractor, SiftSettings
 from sg_nerfstudio.initialisers.pipeline import silent_progress
 from sg_nerfstudio.initialisers.reference_cloud import PairingSettings, ReferenceSource, build_reference_cloud
@@ -355,7 +356,7 @@ def ground_truth(model: pycolmap.Reconstruction, solution: dict[str, SolvedPhoto
     record = alignment.transform.as_record() | {
         "residual_rotation_deg": alignment.rotation_residual_deg.round(4).tolist(),
         "residual_centre": alignment.centre_residual.round(5).tolist(),
-        "principal_point_turn_deg": [round(principal_point_turn_deg(g, t), 4) for g, t in zip(given, target)],
+        "principal_point_turn_deg": [round(rotation_angle_deg(t[:, :3] @ g[:, :3].T), 4) for g, t in zip(given, target)],
         "given_principal_point": plain.transform.as_record() | {"residual_rotation_deg": plain.rotation_residual_deg.round(4).tolist()},
     }
     return record, alignment
@@ -374,9 +375,3 @@ def at_principal_point_of(cam_from_world: Array, camera: pycolmap.Camera, sfm_ca
     rotation = turn.as_matrix() @ cam_from_world[:, :3]
     centre = -cam_from_world[:, :3].T @ cam_from_world[:, 3]
     return np.concatenate([rotation, (-rotation @ centre)[:, None]], axis=1)
-
-
-def principal_point_turn_deg(before: Array, after: Array) -> float:
-    """The angle (degrees) between two [3, 4] cameras' orientations."""
-    relative = after[:, :3] @ before[:, :3].T
-    return float(np.degrees(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0))))

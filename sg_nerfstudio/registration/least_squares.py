@@ -62,9 +62,8 @@ def levenberg_marquardt(
     (module docstring). Stops when an accepted step lowers the cost by less than `relative_tolerance` of it, when the
     largest gradient component is under `gradient_tolerance` times the cost, or when no damping finds a lower cost."""
     x = x0.detach().clone()
-    current = residuals(x)
-    cost = float(current.cost())
-    damping, growth = None, 2.0
+    cost = float(residuals(x).cost())
+    damping, growth = 1e-4, 2.0
 
     def parts(point: Tensor) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
         value = residuals(point)
@@ -80,8 +79,6 @@ def levenberg_marquardt(
         if float(gradient.abs().max()) <= gradient_tolerance * max(cost, 1e-300):
             return Solution(x, iteration - 1, True)
         scaling = torch.diagonal(hessian).clamp_min(1e-12 * float(torch.diagonal(hessian).max()) + 1e-300)
-        if damping is None:
-            damping = 1e-4
         while True:
             try:
                 step = torch.linalg.solve(hessian + damping * torch.diag(scaling), -gradient)

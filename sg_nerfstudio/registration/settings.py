@@ -143,7 +143,7 @@ class RegistrationSettings:
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
     camera_fit_iterations: int = 100
     """At most this many Levenberg-Marquardt iterations (render-free; `keypoints.fit_jointly`) for the joint fit of
-    `refine_focal` / `refine_photo_poses` / `refine_distortion` (the real-photo meta-images converge in 10-30)."""
+    `refine_focal` / `refine_photo_poses` / `refine_distortion` (the real-photo meta-images converged in 7-10)."""
     prealigned_steps: Optional[int] = None
     """Steps of the main stage when the keypoint pre-alignment ran (it leaves the start within a fraction of a degree,
     where the dense objective needs neither the steps nor the learning rate that reach it from 5°); None: `steps`."""

@@ -512,7 +512,7 @@ def test_depth_agreement_of_the_meta_image_follows_a_wrong_scale(reference, meta
     """The meta-image's own sparse points against the reference's rendered depth: scaling the truth about its
     cameras (they stay, the points move) by 1.25 or 0.8 shifts the median log ratio by about -log of the factor.
     (Its value at the truth is -0.20 on this 300-step reference, whose floaters sit in front of the surface; within
-    ±0.03 on the 1500-step references of README "Depth agreement".)"""
+    ±0.03 on the 1500-step references of docs/measurements.md "Depth agreement".)"""
     settings = RegistrationSettings(**{**FAST, "objective": "teacher-on-render"})
     objective = build_objective(reference, settings)
     truth = reference.world_to_dataparser @ ground_truth

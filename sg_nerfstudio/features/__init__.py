@@ -3,7 +3,7 @@
 - `dinov2`: DINOv2 ViT-S/14 patch tokens (the paper's choice), weights from local files only;
 - `offline`: a weight-free oriented-gradient descriptor, so everything runs without DINOv2;
 - `dense-sift`: kornia's dense RootSIFT, weight-free and more discriminative than `offline` (compared in the
-  README, "Dense SIFT as the render teacher").
+  docs/measurements.md, "Dense SIFT as the render teacher").
 Maps are cached on disk per image content and settings (`cache.py`).
 """
 

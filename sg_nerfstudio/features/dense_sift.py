@@ -16,7 +16,7 @@ module) at a third of the cost: 16 renders of 128 x 96 described on 32 x 24 cell
 0.19 s, 0.59 s with kornia's module as is and 0.13 s with the offline descriptor (2 threads, median of 5), where
 the full-resolution pooling's backward was 70% of the module's time.
 
-Measured as registration's render teacher (README, "Dense SIFT as the render teacher"): with the keypoint anchors
+Measured as registration's render teacher (docs/measurements.md, "Dense SIFT as the render teacher"): with the keypoint anchors
 it ends slightly closer on the real-photo scenes and the same on synthetic ones; the dense objective alone has a
 much narrower basin with it. The presets keep the offline descriptor; `--render-teacher dense-sift` selects it.
 """

@@ -188,7 +188,7 @@ def relative_focal_uncertainty(reconstruction: pycolmap.Reconstruction) -> dict[
     """COLMAP camera id -> the standard deviation of its focal length relative to the focal length (sigma_f / f): how
     well the model's own SfM determined it. From pycolmap's covariance of a bundle adjustment of the model in which
     poses, points, focal lengths and distortion are free (principal points fixed, the gauge fixed by two cameras),
-    evaluated at the model as it is (nothing is refined). The 3-photo models of real photos in README "Per-photo focal
+    evaluated at the model as it is (nothing is refined). The 3-photo models of real photos in docs/measurements.md "Per-photo focal
     lengths" give 4-10%, sg-demo's 16-photo synthetic one 0.4-1.7%. Cameras it cannot estimate are left out."""
     return intrinsics_uncertainty(reconstruction)[0]
 
@@ -224,7 +224,7 @@ def relative_rotation_uncertainty(reconstruction: pycolmap.Reconstruction) -> di
     over the other photos of the standard deviation (degrees, root mean of the three axes' variances) of the rotation
     between the two cameras, from the same bundle-adjustment covariance as `relative_focal_uncertainty` (focal lengths
     and distortion free) with the gauge fixed by three points, so that every camera is free and the relative poses
-    are gauge-invariant. The 3-photo models of real photos in README "Per-photo poses" give 0.18-0.54°, sg-demo's
+    are gauge-invariant. The 3-photo models of real photos in docs/measurements.md "Per-photo poses" give 0.18-0.54°, sg-demo's
     12-16-photo synthetic ones 0.04-0.11°. Photos it cannot estimate are left out."""
     model = pycolmap.Reconstruction(reconstruction)
     covariance = _sfm_covariance(model, pycolmap.BundleAdjustmentGauge.THREE_POINTS)

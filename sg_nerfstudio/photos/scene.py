@@ -23,7 +23,7 @@ with cameras this builds the same kind of scene:
    turns each camera by the angle between that point and the true one (0.48° for Strecha's fountain-P11, whose
    calibrated principal point is 15 / 17 px off the centre of a 3072-px photo), and a ground truth that compared
    orientations across the two conventions would hold every registration of such a model that far from the
-   answer (README "The principal point in the ground truth"). The plain alignment is recorded beside it.
+   answer (docs/measurements.md "The principal point in the ground truth"). The plain alignment is recorded beside it.
 
 Written atomically; `scene.json` records the settings, the split, what was left out and why.
 """

@@ -5,8 +5,8 @@ the long side for the CPU presets). On real photographs its minimum is not exact
 reference renders blur and distort what six training photos did not see, and the descriptor pools 8-pixel
 cells of a 256-pixel image. A SIFT start is the opposite: its keypoints are located to a pixel of the full
 photo against points triangulated from the reference's *photos*, but it fits each photo on its own and needs
-texture. Measured on the real-photo scenes (README "Real-photo benchmark scenes"), refinement alone ended 0.1-0.2°
-worse than a colmap start within 1° and stopped at 0.8-1.3° from 5° starts; README "Keypoint anchors, measured"
+texture. Measured on the real-photo scenes (docs/measurements.md "Real-photo benchmark scenes"), refinement alone ended 0.1-0.2°
+worse than a colmap start within 1° and stopped at 0.8-1.3° from 5° starts; docs/measurements.md "Keypoint anchors, measured"
 has what the anchors changed.
 
 With `keypoint_weight > 0` the objective of every stage becomes
@@ -328,7 +328,7 @@ class Anchoring:
         cannot tell focal length from depth, or one photo from the others), or when nothing could be freed.
 
         A 3-photo SfM model's focal lengths can be a few percent off and its relative poses a fraction of a degree
-        (README "Per-photo focal lengths", "Per-photo poses"); the Sim(3) cannot absorb either, and an image-based
+        (docs/measurements.md "Per-photo focal lengths", "Per-photo poses"); the Sim(3) cannot absorb either, and an image-based
         alignment then places each camera nearer or farther, or turns the whole group to split one photo's error. Each
         focal length's prior is the SfM's own uncertainty (`relative_focal_uncertainty`): a focal length the SfM fixed
         well (many photos) barely moves, a poorly fixed one follows the keypoints; cameras whose uncertainty cannot be
@@ -449,7 +449,7 @@ def fit_jointly(
     diverged. From a pre-aligned start the problem is smooth and small (7 + G + 6 P' + G parameters) but
     ill-conditioned (a common turn of every photo against the Sim(3), focal length against depth): L-BFGS had not
     converged in 1000 iterations on the real-photo meta-images, and its end point moved with the last digits of the
-    priors (README "The camera fit, solved by Levenberg-Marquardt")."""
+    priors (docs/measurements.md "The camera fit, solved by Levenberg-Marquardt")."""
     base = start.to_torch()
     centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
     cameras, photos = len(term.camera_ids), term.photos

@@ -4,7 +4,7 @@ The joint fit of the Sim(3) with the meta-image's cameras (`keypoints.fit_jointl
 camera parameters, 31 for a 3-photo meta-image) is a bundle adjustment with the 3-D points held: smooth, small and
 ill-conditioned (focal length against depth, a common turn of every photo against the Sim(3)). L-BFGS had not
 converged after 1000 iterations there (largest gradient component 0.24), so its end point moved with 1e-11 changes
-of the priors and a fit landed on either side of the plausibility limit from run to run (README "The keypoint kernel
+of the priors and a fit landed on either side of the plausibility limit from run to run (docs/measurements.md "The keypoint kernel
 after the camera fit, measured"); 5000 iterations converged but took 19 s. A Gauss-Newton step uses the Jacobian of
 the residuals, which is what such problems are made of: it converges in tens of iterations.
 

@@ -57,7 +57,7 @@ class RegistrationSettings:
     """Fraction of each stage's steps in which every photo counts (the plain mean) before the robust rule
     trims: the rule then starts from a pose that has settled, where occluded photos rank above the clean ones
     (away from the answer every photo's loss sits near the same floor and the rule drops photos no worse than
-    the others). 0: the rule from the first step (paper); 0 in every preset (README, "The robust loss")."""
+    the others). 0: the rule from the first step (paper); 0 in every preset (docs/measurements.md, "The robust loss")."""
     images_per_step: int = 0
     """Photos rendered per step; 0 = all of them (paper)."""
     teacher_input_size: Optional[int] = None
@@ -102,7 +102,7 @@ class RegistrationSettings:
     reference's size (registration/visibility.py); 0 (or less): no budget. Models that fit are rendered exactly as at
     `level_of_detail` (every CPU reference this project trains: tens of thousands of Gaussians). At 400,000 a
     1M-Gaussian reference merged at 2 px (375k rendered) and its step cost 2.9-3.1x that of a 100k one; at 300,000 it
-    merges at 4 px (146k) and costs 1.0-1.6x (two runs), its anchored registration ending as close (README "All of it in one
+    merges at 4 px (146k) and costs 1.0-1.6x (two runs), its anchored registration ending as close (docs/measurements.md "All of it in one
     run")."""
     update_centre: Literal["cameras", "look-at"] = "cameras"
     """Point the update delta rotates and scales about: the centroid of the meta-image's cameras (DESIGN.md, the
@@ -131,14 +131,14 @@ class RegistrationSettings:
     the photo's median point depth times that angle). Every later stage renders the moved cameras, the result is the
     final Sim(3) composed with the one that maps the meta-image's cameras onto the moved ones
     (`geometry.alignment.align_cameras`), and transform.json records each photo's correction. For SfM models of a few
-    photos whose relative poses are a fraction of a degree off (README "Per-photo poses"); off = the meta-image is one
+    photos whose relative poses are a fraction of a degree off (docs/measurements.md "Per-photo poses"); off = the meta-image is one
     rigid body (the paper)."""
     refine_distortion: bool = False
     """In the same joint fit, the first radial distortion coefficient k1 of each COLMAP camera of the photos with keypoints
     (models SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV), held by the meta-image SfM's own uncertainty of it; the keypoints'
     rays are undistorted again with the fitted focal length and k1, every later stage renders against the photos
     undistorted with it, transform.json and the aligned model carry it. A 3-photo SfM can get k1 a few hundredths off
-    (README "Other splits and looks of the same real photos"); off = the SfM's distortion as it is (the paper)."""
+    (docs/measurements.md "Other splits and looks of the same real photos"); off = the SfM's distortion as it is (the paper)."""
     photo_pose_prior_scale: float = 1.0
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
     camera_fit_iterations: int = 100

@@ -24,7 +24,7 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   the reference's rendered depth to the meta-image's own sparse points' depth at the result, the share of
   points within 10%, and how many the model covers; reported, not used: a wrong scale or depth shows there
   (0.1 for 10%), but most inaccurate results of the benchmark (3 of wide-cpu's 5 from 30°) were rotations that
-  keep the depths (README "Depth agreement").
+  keep the depths (docs/measurements.md "Depth agreement").
 - `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
   for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
 

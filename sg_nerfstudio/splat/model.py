@@ -17,7 +17,7 @@ means2d gradients on the CPU backend (absgrad needs gsplat's CUDA backward).
 
 Why a separate feature render: the loss only sees the teacher grid (32 cells for the offline teacher), and
 compositing 128 channels at 480x320 was most of a CPU training step (0.83 s of which the compositor's forward
-and backward 0.45 s and the 128-channel resize 0.1 s, fountain-P11 reference; README "Training speed").
+and backward 0.45 s and the 128-channel resize 0.1 s, fountain-P11 reference; docs/measurements.md "Training speed").
 
 Viewer outputs: rgb, depth, accumulation, decoded `features` [H, W, D_teacher] (upsampled bilinearly from a
 separate feature render) and `feature_pca` [H, W, 3], a projection on a PCA basis fixed at construction from

@@ -163,6 +163,15 @@ def test_start_precision_table_counts_refinements_further_than_their_start_beyon
         "| colmap | 1-5° | 1 | 0 | 0 | 0 | 0 |",
     ]
     assert start_precision_table([], ("colmap",)) == []
+    # a scene with a point-based truth adds "by more than the two truths differ" to both
+    records[0]["truth_disagreement"] = {"dR": 0.15, "dT": 0.0}  # 0.22° further: beyond 0.15°, and ΔT closer
+    records[1]["truth_disagreement"] = {"dR": 0.02, "dT": 0.0005}  # 0.01° / 0.002 further: within 0.02°, beyond 0.0005 (+ 0.0005)
+    assert start_precision_table(records, ("colmap",))[:3] == [
+        "| start | start ΔR | starts | ΔR further | by more than the truth's residual | by more than the two truths differ "
+        "| ΔT further | by more than the truth's residual | by more than the two truths differ |",
+        "|---|---|---|---|---|---|---|---|---|",
+        "| colmap | < 1° | 4 | 3 | 2 | 2 | 2 | 1 | 2 |",
+    ]
 
 
 def test_photo_loss_separation_is_the_auc_of_the_ratios():

@@ -42,6 +42,10 @@ class BenchmarkMeta:
     cameras from the solution's (gt_transform.json `residual_rotation_deg` / `residual_centre`, written by the
     real-photo scene builder); ΔR / ΔT differences below it are within the ground truth's own error. None where
     the file does not give it (synthetic scenes: exact)."""
+    truth_disagreement: Optional[dict] = None
+    """{"dR": degrees, "dT": reference units}: how far the point-based ground truth (the meta-image's SfM points fitted
+    to its tracks triangulated with the solution's cameras, gt_transform.json `point_based`, `photos.scene.point_truth`)
+    moves the meta-image's cameras from the camera-based one; None where the file does not give it."""
 
 
 @dataclass
@@ -92,7 +96,7 @@ def read_meta(directory: Path) -> BenchmarkMeta:
         truth = Sim3.from_matrix(record["matrix"])
     except Exception as error:
         raise BenchmarkLayoutError(f"Meta-image {directory} needs gt_transform.json with a 4x4 similarity \"matrix\" (meta -> reference world) ({type(error).__name__}).") from None
-    return BenchmarkMeta(directory.name, directory, truth, truth_residual(record))
+    return BenchmarkMeta(directory.name, directory, truth, truth_residual(record), truth_disagreement(record))
 
 
 def truth_residual(record: dict) -> Optional[dict]:
@@ -104,3 +108,13 @@ def truth_residual(record: dict) -> Optional[dict]:
     if rotation.size == 0 or centre.size == 0 or not (np.isfinite(rotation).all() and np.isfinite(centre).all()):
         return None
     return {"dR": float(np.sqrt(np.mean(rotation**2))), "dT": float(np.sqrt(np.mean(centre**2)))}
+
+
+def truth_disagreement(record: dict) -> Optional[dict]:
+    """{"dR", "dT"} between gt_transform.json's point-based and camera-based truths, or None without a usable one."""
+    point_based = record.get("point_based")
+    try:
+        values = {"dR": float(point_based["delta_R_deg"]), "dT": float(point_based["delta_T"])}
+    except (KeyError, TypeError, ValueError):
+        return None
+    return values if all(np.isfinite(v) and v >= 0 for v in values.values()) else None

@@ -105,18 +105,26 @@ def threshold_sweeps(records: list[dict], initialisers: tuple[str, ...]) -> list
 
 
 def per_meta(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
-    """One row per meta-image: for each start, ΔR / ΔT before -> after (or why it failed)."""
+    """One row per meta-image: for each start, ΔR / ΔT before -> after (or why it failed); where the scenes give them,
+    first the ground truth's own residual and how far its point-based truth is from it (`BenchmarkMeta`)."""
     columns = [_table1_run(init, mode) for init in initialisers for mode in _table1_modes(records, init)]
-    lines = ["| scene | meta-image | photos | " + " | ".join(columns) + " |", "|---|---|---|" + "---|" * len(columns)]
+    table1_records = [r for r in records if r["family"] == "table1"]
+    truths = [key for key in ("truth_residual", "truth_disagreement") if any(r.get(key) for r in table1_records)]
+    titles = {"truth_residual": "truth's residual", "truth_disagreement": "two truths differ"}
+    header = [titles[key] for key in truths] + columns
+    lines = ["| scene | meta-image | photos | " + " | ".join(header) + " |", "|---|---|---|" + "---|" * len(header)]
     by_meta: dict[tuple[str, str], dict[str, dict]] = defaultdict(dict)
-    for r in records:
-        if r["family"] == "table1":
-            by_meta[(r["scene"], r["meta"])][r["run"]] = r
+    for r in table1_records:
+        by_meta[(r["scene"], r["meta"])][r["run"]] = r
     for (scene, meta), runs in sorted(by_meta.items()):
-        photos = next(iter(runs.values()))["photos"]
-        cells = [_transition(runs.get(column)) for column in columns]
-        lines.append(f"| {scene} | {meta} | {photos} | " + " | ".join(cells) + " |")
+        first = next(iter(runs.values()))
+        cells = [_errors(first.get(key)) for key in truths] + [_transition(runs.get(column)) for column in columns]
+        lines.append(f"| {scene} | {meta} | {first['photos']} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _errors(errors: Optional[dict]) -> str:
+    return "-" if not errors else f"{errors['dR']:.2f}° / {errors['dT']:.3f}"
 
 
 def _transition(record: Optional[dict]) -> str:
@@ -140,11 +148,12 @@ PRINTED_PRECISION = {"dR": 0.005, "dT": 0.0005}
 def start_precision_table(records: list[dict], initialisers: tuple[str, ...]) -> list[str]:
     """Per initialiser start (and `--compare-config` preset) and band of the start's ΔR: how many refinements end
     further from the truth than their start, in ΔR and in ΔT, and how many of those by more than the ground truth's
-    own residual (`BenchmarkMeta.truth_residual`, 0 where the scene gives none)."""
-    lines = [
-        "| start | start ΔR | starts | ΔR further | by more than the truth's residual | ΔT further | by more than the truth's residual |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    own residual (`BenchmarkMeta.truth_residual`, 0 where the scene gives none) and, where some scene gives a
+    point-based truth, by more than the two truths differ (`BenchmarkMeta.truth_disagreement`, 0 where not given)."""
+    allowances = ["truth_residual"] + (["truth_disagreement"] if any(r.get("truth_disagreement") for r in records) else [])
+    titles = {"truth_residual": "by more than the truth's residual", "truth_disagreement": "by more than the two truths differ"}
+    per_key = " | ".join(titles[a] for a in allowances)
+    lines = [f"| start | start ΔR | starts | ΔR further | {per_key} | ΔT further | {per_key} |", "|---|---|---|" + "---|" * (2 + 2 * len(allowances))]
     for init in initialisers:
         for mode in _table1_modes(records, init):
             runs = [r for r in records if r["family"] == "table1" and r["run"] == _table1_run(init, mode) and r["before"] and r["after"]]
@@ -152,17 +161,16 @@ def start_precision_table(records: list[dict], initialisers: tuple[str, ...]) ->
                 band = [r for r in runs if low <= r["before"]["dR"] < high]
                 if band:
                     name = init if not mode else f"{init}, {mode}"
-                    counts = [f"{sum(_further(r, key, 0.0) for r in band)} | {sum(_further(r, key, None) for r in band)}" for key in ("dR", "dT")]
+                    counts = [" | ".join(str(sum(_further(r, key, a) for r in band)) for a in [None, *allowances]) for key in ("dR", "dT")]
                     lines.append(f"| {name} | {_band_label(low, high)} | {len(band)} | " + " | ".join(counts) + " |")
     return lines if len(lines) > 2 else []
 
 
-def _further(record: dict, key: str, allowance: Optional[float]) -> bool:
-    """Whether the refinement ended further than its start in `key` by more than the printed precision, plus
-    `allowance` (None: the ground truth's own residual in that key)."""
-    if allowance is None:
-        allowance = (record.get("truth_residual") or {}).get(key, 0.0)
-    return record["after"][key] - record["before"][key] > PRINTED_PRECISION[key] + allowance
+def _further(record: dict, key: str, allowance: Optional[str]) -> bool:
+    """Whether the refinement ended further than its start in `key` by more than the printed precision, plus the
+    record's `allowance` ("truth_residual" or "truth_disagreement", 0 where the record has none; None: nothing)."""
+    extra = (record.get(allowance) or {}).get(key, 0.0) if allowance else 0.0
+    return record["after"][key] - record["before"][key] > PRINTED_PRECISION[key] + extra
 
 
 def _band_label(low: float, high: float) -> str:
@@ -277,7 +285,9 @@ def write_results(output: Path, records: list[dict], initialisers: tuple[str, ..
         sections += [
             "## Ended further than the start (initialiser starts)", "",
             "Changes under the printed precision (0.005°, 0.0005) do not count; the truth's residual is the RMS per-camera residual of "
-            "the ground-truth alignment (gt_transform.json; 0 where the scene gives none).", "", *precision, "",
+            "the ground-truth alignment (gt_transform.json; 0 where the scene gives none); where a scene gives a point-based truth "
+            "(gt_transform.json `point_based`: sg-make-scene --from-photos), the two truths' difference is the RMS change of the "
+            "meta-image's cameras between them.", "", *precision, "",
         ]
     ablations = ablation_table(records)
     if ablations:

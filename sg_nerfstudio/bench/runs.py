@@ -184,6 +184,7 @@ class SceneRunner:
             "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0, "mode": spec.mode,
             "preset": spec.mode or self.options.preset, "verdict": None,
             "truth_residual": meta.truth_residual if not spec.subset_size else None,
+            "truth_disagreement": meta.truth_disagreement if not spec.subset_size else None,
         }
         poses = subject.poses
         if start is not None:

@@ -73,6 +73,13 @@ class FromPhotosArgs:
     """Show COLMAP's INFO log."""
 
 
+def _truths_differ(meta: dict) -> str:
+    """How far the meta-image's point-based ground truth is from the camera-based one (`photos.scene.point_truth`)."""
+    if meta.get("point_truth_delta_R_deg") is None:
+        return "no point-based truth"
+    return f"point-based truth {meta['point_truth_delta_R_deg']:.2f} deg / {meta['point_truth_delta_T']:.3f} from it"
+
+
 def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
     set_colmap_verbosity(args.verbose)
     with console.status("building the scene") as status:
@@ -81,7 +88,8 @@ def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
     console.print(
         f"Wrote {args.output}: reference of {len(manifest['reference']['images'])} photos ({manifest['reference']['n_points3D']} "
         f"triangulated points), meta-images " + ", ".join(
-            f"{m['name']} ({m['n_photos']} photos, ground-truth residual <= {m['gt_residual_rotation_deg_max']:.2f} deg)" for m in written
+            f"{m['name']} ({m['n_photos']} photos, ground-truth residual <= {m['gt_residual_rotation_deg_max']:.2f} deg, "
+            f"{_truths_differ(m)})" for m in written
         ) + f"; solution: {manifest['solution']}; {manifest['wall_time_s']} s.",
         soft_wrap=True, markup=False,
     )

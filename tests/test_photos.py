@@ -178,47 +178,6 @@ def test_ground_truth_cameras_turned_to_the_sfm_principal_point():
     np.testing.assert_allclose(at_principal_point_of(pose, centred, sfm_camera), pose, atol=1e-12)
 
 
-def _model_with_tracks(cam_from_meta: list, points: np.ndarray, camera: pycolmap.Camera) -> pycolmap.Reconstruction:
-    """A COLMAP model of photos `cam_from_meta` [3, 4] that all see `points` [N, 3] (meta frame), one track each."""
-    model = pycolmap.Reconstruction()
-    model.add_camera_with_trivial_rig(camera)
-    for image_id, pose in enumerate(cam_from_meta, start=1):
-        pixels = camera.img_from_cam(points @ pose[:, :3].T + pose[:, 3])
-        image = pycolmap.Image(name=f"{image_id}.jpg", camera_id=camera.camera_id, image_id=image_id,
-                               points2D=pycolmap.Point2DList([pycolmap.Point2D(xy) for xy in pixels]))
-        model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(pose[:, :3]), pose[:, 3]))
-    for index, point in enumerate(points):
-        track = pycolmap.Track()
-        for image_id in range(1, len(cam_from_meta) + 1):
-            track.add_element(image_id, index)
-        model.add_point3D(point, track)
-    return model
-
-
-def test_point_truth_recovers_the_similarity_and_measures_the_camera_truths_distance():
-    """Three photos of 60 points, the solution their cameras moved by a known Sim(3): the tracks triangulated with the
-    solution's cameras give that Sim(3) back, and its distance from a camera truth turned by 0.5° is 0.5° (no distance
-    from the right one). A model with too few tracks gives no point-based truth and says why."""
-    from scipy.spatial.transform import Rotation
-
-    from sg_nerfstudio.photos.scene import SolvedPhoto, point_truth
-
-    rng = np.random.default_rng(4)
-    truth = Sim3.from_parts(2.5, Rotation.from_rotvec([0.2, -0.4, 0.3]).as_matrix(), [1.0, -2.0, 0.5])
-    camera = pycolmap.Camera(model="SIMPLE_PINHOLE", width=640, height=480, params=[500.0, 320.0, 240.0], camera_id=1)
-    poses = [np.hstack([Rotation.from_rotvec([0.0, 0.05 * k, 0.0]).as_matrix(), [[-0.4 * k], [0.0], [0.0]]]) for k in (-1, 0, 1)]
-    points = rng.uniform([-1.5, -1.0, 4.0], [1.5, 1.0, 7.0], (60, 3))
-    model = _model_with_tracks(poses, points, camera)
-    solution = {f"{i}.jpg": SolvedPhoto(f"{i}.jpg", camera, truth.move_camera(pose)) for i, pose in enumerate(poses, start=1)}
-    record = point_truth(model, solution, truth)
-    np.testing.assert_allclose(record["matrix"], np.asarray(truth), atol=1e-6)
-    assert record["inliers"] == record["points"] == 60
-    assert record["delta_R_deg"] < 1e-4 and record["delta_T"] < 1e-5
-    turned = Sim3.from_parts(1.0, Rotation.from_rotvec([0.0, 0.0, np.radians(0.5)]).as_matrix(), np.zeros(3)) @ truth
-    assert point_truth(model, solution, turned)["delta_R_deg"] == pytest.approx(0.5, abs=1e-3)
-    assert "why" in point_truth(_model_with_tracks(poses, points[:10], camera), solution, truth)
-
-
 def test_split_along_the_path():
     names = [f"{i:02d}" for i in range(11)]
     reference, metas = split_photos(names, 2, 3)

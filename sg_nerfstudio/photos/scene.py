@@ -50,6 +50,7 @@ from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.alignment import CameraAlignment, align_cameras, camera_centres, camera_residuals
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
+from sg_nerfstudio.geometry.triangulation import track_observations, triangulate_track
 from sg_nerfstudio.initialisers.estimate import similarity_from_centres
 from sg_nerfstudio.initialisers.features import MatchSettings, SiftExtractor, SiftSettings
 from sg_nerfstudio.initialisers.pipeline import silent_progress
@@ -368,8 +369,6 @@ def ground_truth(model: pycolmap.Reconstruction, solution: dict[str, SolvedPhoto
     return record, alignment
 
 
-POINT_TRUTH_PIXELS = 4.0
-"""Reprojection threshold (pixels) of the tracks triangulated with the solution's cameras (COLMAP's filter default)."""
 POINT_TRUTH_MIN_ANGLE_DEG = 1.5
 """Smallest triangulation angle of a track the point-based truth uses (COLMAP's filter default): below it the depth is noise."""
 POINT_TRUTH_MIN_POINTS = 20
@@ -383,7 +382,7 @@ def point_truth(model: pycolmap.Reconstruction, solution: dict[str, SolvedPhoto]
     """A second ground truth from the meta-image's own 3D points, and how far it is from the camera-based one.
 
     Every track of the model (its keypoints in two or more photos) is triangulated again with the `solution`'s cameras
-    of its photos, fixed (pycolmap's LO-RANSAC triangulation, tracks under POINT_TRUTH_MIN_ANGLE_DEG dropped), and the
+    of its photos, fixed (`geometry.triangulation`, tracks under POINT_TRUTH_MIN_ANGLE_DEG dropped), and the
     Sim(3) meta -> reference that maps the model's points onto those is fitted robustly (pycolmap's LO-RANSAC, then
     least squares on the tracks that agree, POINT_TRUTH_AGREEMENT).
 
@@ -396,22 +395,17 @@ def point_truth(model: pycolmap.Reconstruction, solution: dict[str, SolvedPhoto]
     Returns {"matrix", "points", "inliers", "delta_R_deg", "delta_T"} (the two truths' RMS difference over the model's
     cameras, as `registration.metrics` measures a registration), or {"why"} when too few tracks agree."""
     ids = sorted(model.reg_image_ids(), key=lambda i: model.images[i].name)
-    poses = {i: pycolmap.Rigid3d(solution[model.images[i].name].cam_from_world) for i in ids}
-    cameras = {i: solution[model.images[i].name].camera for i in ids}
-    options = pycolmap.EstimateTriangulationOptions()
-    options.min_tri_angle = np.radians(POINT_TRUTH_MIN_ANGLE_DEG)
-    options.ransac.random_seed = 0
+    solved_photos = {i: solution[model.images[i].name] for i in ids}
     own, solved = [], []
     for point in model.points3D.values():
-        elements = [e for e in point.track.elements if e.image_id in poses]
-        if len(elements) < 2:
+        elements, pixels = track_observations(model, point)
+        if len(elements) < 2 or any(image_id not in solved_photos for image_id, _ in elements):
             continue
-        options.ransac.max_error = POINT_TRUTH_PIXELS / min(cameras[e.image_id].mean_focal_length() for e in elements)
-        pixels = np.array([model.images[e.image_id].points2D[e.point2D_idx].xy for e in elements], dtype=np.float64)
-        found = pycolmap.estimate_triangulation(pixels, [poses[e.image_id] for e in elements], [cameras[e.image_id] for e in elements], options)
-        if found is not None and int(np.sum(found["inliers"])) >= 2:
+        photos = [solved_photos[image_id] for image_id, _ in elements]
+        found = triangulate_track(pixels, [p.cam_from_world for p in photos], [p.camera for p in photos], POINT_TRUTH_MIN_ANGLE_DEG)
+        if found is not None:
             own.append(point.xyz)
-            solved.append(np.asarray(found["xyz"], dtype=np.float64))
+            solved.append(found.xyz)
     if len(own) < POINT_TRUTH_MIN_POINTS:
         return {"why": f"only {len(own)} of {model.num_points3D()} tracks triangulate with the solution's cameras"}
     own, solved = np.array(own), np.array(solved)

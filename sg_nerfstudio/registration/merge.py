@@ -24,6 +24,7 @@ import pycolmap
 
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.geometry.triangulation import track_observations, triangulate_track
 
 
 
@@ -36,10 +37,16 @@ class MergePart:
     transform: Optional[Sim3] = None  # meta -> reference world that put it there (None: the reference)
 
 
-def aligned_reconstruction(reconstruction: pycolmap.Reconstruction, transform: Sim3, focal_scales: Optional[dict[int, float]] = None) -> pycolmap.Reconstruction:
+def aligned_reconstruction(
+    reconstruction: pycolmap.Reconstruction, transform: Sim3, focal_scales: Optional[dict[int, float]] = None,
+    poses: Optional[dict[str, np.ndarray]] = None, retriangulate: bool = False,
+) -> pycolmap.Reconstruction:
     """A copy of `reconstruction` with cameras and points moved by `transform` (pycolmap moves them: the same
-    camera motion as `Sim3.move_camera`, which the tests check against it) and, per camera id in `focal_scales`,
-    that camera's focal lengths times the scale (`MetaImage.camera_focal_scales`: what the registration fitted)."""
+    camera motion as `Sim3.move_camera`, which the tests check against it); per camera id in `focal_scales`, that
+    camera's focal lengths times the scale (`MetaImage.camera_focal_scales`: what the registration fitted); per image
+    name in `poses`, that [3, 4] cam_from_world in the reference world (`RegistrationResult.photo_poses`). With
+    `retriangulate`, every track is triangulated again with the new cameras (`retriangulated`): the SfM's points fit
+    its own focal lengths, distortion and poses, and under fitted ones they reproject pixels away."""
     moved = pycolmap.Reconstruction(reconstruction)
     moved.transform(pycolmap.Sim3d(transform.scale, pycolmap.Rotation3d(np.asarray(transform.rotation)), np.asarray(transform.translation)))
     for camera_id, scale in (focal_scales or {}).items():
@@ -47,7 +54,29 @@ def aligned_reconstruction(reconstruction: pycolmap.Reconstruction, transform: S
         params = np.array(camera.params)
         params[list(camera.focal_length_idxs())] *= scale
         camera.params = params
-    return moved
+    for name, pose in (poses or {}).items():
+        image = moved.find_image_with_name(name)
+        moved.frames[image.frame_id].set_cam_from_world(image.camera_id, pycolmap.Rigid3d(np.asarray(pose, dtype=np.float64)))
+    return retriangulated(moved) if retriangulate else moved
+
+
+def retriangulated(model: pycolmap.Reconstruction) -> pycolmap.Reconstruction:
+    """`model` (changed in place) with every point triangulated again from its track with the model's cameras
+    (`geometry.triangulation.triangulate_track`); observations beyond its threshold leave the track, and a point whose
+    track keeps fewer than two is deleted."""
+    for point_id in list(model.point3D_ids()):
+        point = model.points3D[point_id]
+        elements, pixels = track_observations(model, point)
+        images = [model.images[image_id] for image_id, _ in elements]
+        found = triangulate_track(pixels, [image.cam_from_world().matrix() for image in images], [model.cameras[image.camera_id] for image in images])
+        if found is None:
+            model.delete_point3D(point_id)
+            continue
+        point.xyz = found.xyz
+        for (image_id, index), inlier in zip(elements, found.inliers):
+            if not inlier:
+                model.delete_observation(image_id, index)
+    return model
 
 
 def merge_reconstructions(parts: list[MergePart]) -> pycolmap.Reconstruction:

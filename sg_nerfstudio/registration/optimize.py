@@ -72,6 +72,10 @@ class RegistrationResult:
     radial_k1: dict[int, float] = field(default_factory=dict)
     """With `settings.refine_distortion`: COLMAP camera id -> the first radial coefficient the registration fitted and
     undistorted its photos with (cameras not listed kept theirs)."""
+    photo_poses: dict[str, Array] = field(default_factory=dict)
+    """With `settings.refine_photo_poses`: photo name -> [3, 4] cam_from_world (OpenCV) in the reference world of each
+    photo the registration moved, where its last stages rendered it (the others sit at `transform` applied to their own
+    pose)."""
 
 
 class BatchSchedule:
@@ -256,6 +260,7 @@ def register(
         focal_scales=fit.focal_scales,
         radial_k1=fit.radial_k1,
         pose_corrections=pose_corrections(given, meta, camera_shift, current.scale * ns_to_world.scale, set(fit.poses)),
+        photo_poses={photo.name: (ns_to_world @ current).move_camera(photo.cam_from_world) for photo in meta.photos if photo.name in fit.poses},
     )
 
 

@@ -6,9 +6,10 @@
                      photo its losses, the focal_scale it was rendered with and (with `refine_photo_poses`) its
                      pose_correction: how far its camera was moved from where the Sim(3) puts it (null: not moved)
                      and (with `refine_distortion`) its camera's radial_k1 (null: as the SfM found it)
-    aligned/         the meta-image's COLMAP model moved into the reference world frame (focal lengths and k1 as
-                     the registration refined them, with `refine_focal` / `refine_distortion`; its photos' poses
-                     moved rigidly)
+    aligned/         the meta-image's COLMAP model in the reference world frame as the registration placed it
+                     (`registered_reconstruction`): moved by the Sim(3), with the focal lengths, k1 and poses it
+                     fitted (`refine_focal` / `refine_distortion` / `refine_photo_poses`) and then every track
+                     triangulated again with those cameras
     losses.csv       per step and photo: loss, whether LTS kept it, its weight, the stage (coarse-<size> | main)
     report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (before | after, each titled; top
                      half: reference model rendered at the photo's pose, bottom half: the photo; labelled)
@@ -28,6 +29,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import pycolmap  # noqa: E402
 import torch  # noqa: E402
 
 from sg_nerfstudio.atomic import atomic_directory  # noqa: E402
@@ -52,10 +54,12 @@ def write_outputs(
     overwrite: bool = False,
 ) -> Path:
     """Write all outputs into `target` (created atomically via a temporary sibling)."""
+    aligned = registered_reconstruction(meta, result)
     meta = meta.with_focal_scales(result.focal_scales).with_radial_distortion(result.radial_k1)  # the intrinsics it rendered with
     with atomic_directory(target, overwrite=overwrite) as staging:
         _write_transform(staging, reference, meta, result)
-        _write_aligned_model(staging / "aligned", meta, result.transform)
+        (staging / "aligned").mkdir()
+        aligned.write_binary(str(staging / "aligned"))
         _write_losses(staging / "losses.csv", result)
         report = staging / "report"
         report.mkdir()
@@ -96,9 +100,14 @@ def _write_transform(directory: Path, reference: ReferenceModel, meta: MetaImage
     (directory / "transform.json").write_text(json.dumps(record, indent=2))
 
 
-def _write_aligned_model(directory: Path, meta: MetaImage, transform: Sim3) -> None:
-    directory.mkdir()
-    aligned_reconstruction(meta.reconstruction, transform, meta.camera_focal_scales()).write_binary(str(directory))
+def registered_reconstruction(meta: MetaImage, result: RegistrationResult) -> pycolmap.Reconstruction:
+    """The meta-image's COLMAP model (`meta` as given to the registration) where the registration put it: moved by
+    `result.transform` into the reference world, its cameras with the focal lengths and k1 the registration fitted, the
+    photos it moved at their fitted poses, and, if any camera changed, every track triangulated again with the new
+    cameras (`merge.aligned_reconstruction`). aligned/ and merged/ are made of it."""
+    refined = meta.with_focal_scales(result.focal_scales).with_radial_distortion(result.radial_k1)
+    changed = bool(result.focal_scales or result.radial_k1 or result.photo_poses)
+    return aligned_reconstruction(refined.reconstruction, result.transform, refined.camera_focal_scales(), result.photo_poses, retriangulate=changed)
 
 
 def _write_losses(path: Path, result: RegistrationResult) -> None:

@@ -33,11 +33,11 @@ from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image, radial
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
-from sg_nerfstudio.registration.merge import MergePart, aligned_reconstruction, write_merged
+from sg_nerfstudio.registration.merge import MergePart, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.objectives import build_objective, check_objective_settings, prepare_photos
 from sg_nerfstudio.registration.optimize import RegistrationResult, register, total_steps
-from sg_nerfstudio.registration.outputs import write_outputs
+from sg_nerfstudio.registration.outputs import registered_reconstruction, write_outputs
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
@@ -298,9 +298,7 @@ def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optio
         elif outcome.result.verdict.label == "failed":
             not_merged[outcome.meta.name] = "verdict failed: " + "; ".join(outcome.result.verdict.reasons)
         else:
-            transform = outcome.result.transform
-            refined = outcome.meta.with_focal_scales(outcome.result.focal_scales).with_radial_distortion(outcome.result.radial_k1)
-            parts.append(MergePart(outcome.meta.name, aligned_reconstruction(refined.reconstruction, transform, refined.camera_focal_scales()), transform))
+            parts.append(MergePart(outcome.meta.name, registered_reconstruction(outcome.meta, outcome.result), outcome.result.transform))
     if not any(part.transform is not None for part in parts):
         console.print(f"[yellow]No meta-image was registered with a verdict other than failed, so {target} is not written.[/yellow]")
         return

@@ -252,7 +252,7 @@ def register_one(
         console.print(f"{meta.name}: radial distortion k1 of {len(changes)} cameras refined by {changes[0]:+.3f} to {changes[-1]:+.3f} (transform.json, aligned/).")
     if result.pose_corrections:
         turns = sorted(c["rotation_deg"] for c in result.pose_corrections.values())
-        console.print(f"{meta.name}: cameras of {len(turns)} photos moved within the meta-image by {turns[0]:.2f}° to {turns[-1]:.2f}° (transform.json).")
+        console.print(f"{meta.name}: cameras of {len(turns)} photos moved within the meta-image by {turns[0]:.2f}° to {turns[-1]:.2f}° (transform.json, aligned/).")
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}

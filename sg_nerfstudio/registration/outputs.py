@@ -52,9 +52,11 @@ def write_outputs(
     result: RegistrationResult,
     errors: Optional[dict[str, PoseErrors]] = None,
     overwrite: bool = False,
+    aligned: Optional[pycolmap.Reconstruction] = None,
 ) -> Path:
-    """Write all outputs into `target` (created atomically via a temporary sibling)."""
-    aligned = registered_reconstruction(meta, result)
+    """Write all outputs into `target` (created atomically via a temporary sibling); `aligned`: the
+    `registered_reconstruction` of `meta` and `result` when the caller has it already (merged/ reuses it)."""
+    aligned = aligned if aligned is not None else registered_reconstruction(meta, result)
     meta = meta.with_focal_scales(result.focal_scales).with_radial_distortion(result.radial_k1)  # the intrinsics it rendered with
     with atomic_directory(target, overwrite=overwrite) as staging:
         _write_transform(staging, reference, meta, result)

@@ -102,12 +102,14 @@ class RegistrationJob:
 
 @dataclass
 class MetaOutcome:
-    """What became of one meta-image: its result (None when its initialisation failed), errors with --gt."""
+    """What became of one meta-image: its result (None when its initialisation failed), errors with --gt, and its
+    model where the registration put it (aligned/, `outputs.registered_reconstruction`)."""
 
     meta: MetaImage
     result: Optional[RegistrationResult] = None
     errors: Optional[dict[str, PoseErrors]] = None
     target: Optional[Path] = None
+    aligned: Optional[pycolmap.Reconstruction] = None
 
 
 def read_initial_transform(value: str) -> Optional[Sim3]:
@@ -256,8 +258,9 @@ def register_one(
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}
-    target = write_outputs(job.output_dir / meta.name, reference, meta, result, errors, overwrite=job.overwrite)
-    return MetaOutcome(meta, result, errors, target)
+    aligned = registered_reconstruction(meta, result)
+    target = write_outputs(job.output_dir / meta.name, reference, meta, result, errors, overwrite=job.overwrite, aligned=aligned)
+    return MetaOutcome(meta, result, errors, target, aligned)
 
 
 def default_preset(load_config: Path, device: str) -> str:
@@ -298,7 +301,7 @@ def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optio
         elif outcome.result.verdict.label == "failed":
             not_merged[outcome.meta.name] = "verdict failed: " + "; ".join(outcome.result.verdict.reasons)
         else:
-            parts.append(MergePart(outcome.meta.name, registered_reconstruction(outcome.meta, outcome.result), outcome.result.transform))
+            parts.append(MergePart(outcome.meta.name, outcome.aligned, outcome.result.transform))
     if not any(part.transform is not None for part in parts):
         console.print(f"[yellow]No meta-image was registered with a verdict other than failed, so {target} is not written.[/yellow]")
         return

@@ -92,8 +92,8 @@ def test_prepare_photos_applies_exif_grey_and_cap(tmp_path):
     assert Image.open(tmp_path / "out" / "grey.png").mode == "RGB"
 
 
-@pytest.mark.parametrize("case", ["missing", "empty", "truncated", "no-model"])
-def test_bad_photo_folders_are_one_sentence(case, tmp_path, capsys):
+@pytest.mark.parametrize("case", ["missing", "empty", "two", "truncated", "no-model"])
+def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     folder = tmp_path / "photos"
     if case != "missing":
         folder.mkdir()
@@ -101,15 +101,21 @@ def test_bad_photo_folders_are_one_sentence(case, tmp_path, capsys):
         noise_photo(folder / "a.jpg", 0)
         data = (folder / "a.jpg").read_bytes()
         (folder / "a.jpg").write_bytes(data[: len(data) // 2])
+        for seed in (1, 2):
+            noise_photo(folder / f"noise{seed}.png", seed)
+    if case == "two":
+        for seed in range(2):
+            noise_photo(folder / f"noise{seed}.png", seed)
     if case == "no-model":
         for seed in range(3):
             noise_photo(folder / f"noise{seed}.png", seed)
     output = tmp_path / "metas"
     assert meta_images_main([str(folder), "--output", str(output), "--threads", "1"]) == 1
-    err = capsys.readouterr().err
-    expected = {"missing": "does not exist", "empty": "holds no JPEG or PNG", "truncated": "a.jpg could not be decoded",
+    err = capfd.readouterr().err  # file-descriptor level: COLMAP's glog writes there, not through sys.stderr
+    expected = {"missing": "does not exist", "empty": "holds no JPEG or PNG", "two": f"{folder} holds 2 JPEG or PNG photo(s); expected at least 3", "truncated": "a.jpg could not be decoded",
                 "no-model": "formed no model"}[case]
     assert expected in err and "Traceback" not in err
+    assert "Failed to create any sparse model" not in err and "No images with matches" not in err  # the mapper's own lines
     assert not output.exists() and not list(tmp_path.glob(".metas*"))
 
 

@@ -13,15 +13,17 @@ Stages (each a pycolmap call on one COLMAP database):
    photos is kept (the meta-images), largest first.
 
 `diagnose` says for each photo that no model holds why, from what the database shows: too few SIFT
-features, no verified pair, or verified pairs that the mapper could not use.
+features, no verified pair, or verified pairs that the mapper could not use. That diagnosis replaces the mapper's
+own warnings and errors ("No images with matches", "Failed to create any sparse model"), which are kept out of the
+terminal unless COLMAP's log is verbose (`quiet_mapper`).
 """
 
 from __future__ import annotations
 
-from contextlib import closing
+from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Iterator, Optional
 
 import numpy as np
 import pycolmap
@@ -122,12 +124,26 @@ def reconstruct(images: Path, names: list[str], work: Path, settings: SfmSetting
     options.random_seed = settings.seed
     options.mapper.init_min_num_inliers = settings.init_min_inliers
     options.mapper.abs_pose_min_num_inliers = settings.min_pose_inliers
-    found = pycolmap.incremental_mapping(str(database), str(images), str(work / "models"), options=options)
+    with quiet_mapper():
+        found = pycolmap.incremental_mapping(str(database), str(images), str(work / "models"), options=options)
     models = sorted(
         (m for m in found.values() if m.num_reg_images() >= settings.min_model_size),
         key=lambda m: (-m.num_reg_images(), min(m.images[i].name for i in m.reg_image_ids())),
     )
     return SfmResult(models, diagnose(database, models), pairing, settings)
+
+
+@contextmanager
+def quiet_mapper() -> Iterator[None]:
+    """While mapping: COLMAP's log at FATAL only, unless it was set to INFO (`--verbose`). A photo set that forms no
+    model otherwise prints glog's warning and error lines before the one sentence `diagnose` gives."""
+    level = pycolmap.logging.minloglevel
+    if level > int(pycolmap.logging.Level.INFO):
+        pycolmap.logging.minloglevel = int(pycolmap.logging.Level.FATAL)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = level
 
 
 def _extract(database: Path, images: Path, names: list[str], settings: SfmSettings) -> None:

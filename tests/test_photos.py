@@ -267,3 +267,26 @@ def test_a_reference_without_3d_points_is_one_sentence(tiny_scene, tmp_path):
     config = cpu_config(reference, tmp_path / "runs", 2, TeacherConfig(name="offline", input_size=64, cache_dir=tmp_path / "cache"))
     with pytest.raises(DatasetInputError, match="has 0 3D points"):
         train(config)
+
+
+@pytest.mark.parametrize("layout", ["sparse/0", "none"])
+def test_a_dataset_without_the_model_colmap_looks_for_is_refused_before_anything_is_written(layout, tiny_scene, tmp_path):
+    """`ns-train ... colmap --data DIR` on COLMAP's own layout (DIR/sparse/0, what sg-meta-images writes) names the flag
+    that reads it, and writes no run directory (nerfstudio saves config.yml before it builds the datamanager)."""
+    from sg_nerfstudio.features import TeacherConfig
+    from sg_nerfstudio.splat.datamanager import DatasetInputError
+    from sg_nerfstudio.splat.training import cpu_config
+
+    dataset = tmp_path / "dataset"
+    shutil.copytree(tiny_scene / "reference" / "images", dataset / "images")
+    if layout != "none":
+        shutil.copytree(tiny_scene / "reference" / "colmap" / "sparse" / "0", dataset / layout)
+    runs = tmp_path / "runs"
+    config = cpu_config(dataset, runs, 2, TeacherConfig(name="offline", input_size=64, cache_dir=tmp_path / "cache"))
+    expected = {
+        "sparse/0": rf"No COLMAP model in {dataset}/colmap/sparse/0; this folder has one in {dataset}/sparse/0: add `--colmap-path sparse/0` after `colmap`\.",
+        "none": rf"No COLMAP model in {dataset}/colmap/sparse/0; expected cameras, images and points3D",
+    }[layout]
+    with pytest.raises(DatasetInputError, match=expected):
+        config.save_config()
+    assert not runs.exists()

@@ -35,6 +35,36 @@ class DatasetInputError(InputError):
     """A dataset the datamanager cannot train on."""
 
 
+COLMAP_LAYOUTS = (Path("colmap/sparse/0"), Path("sparse/0"), Path("sparse"), Path("colmap/sparse"))
+"""Where a COLMAP model sits under a dataset folder: nerfstudio's `ns-process-data` layout first, then COLMAP's own
+and `sg-meta-images`' (`sparse/0`)."""
+
+
+def check_colmap_model(config: "FeatureDatamanagerConfig") -> None:
+    """Stop with one sentence when the COLMAP model that nerfstudio's colmap dataparser reads (`data / colmap_path`) is
+    missing, naming the models the folder does hold and the flag that picks one (the dataparser's own assertion
+    otherwise ends `ns-train` in a traceback)."""
+    parser = config.dataparser
+    if not hasattr(parser, "colmap_path"):
+        return
+    data = Path(config.data) if config.data is not None else Path(parser.data)  # as FullImageDatamanager resolves it
+    model = data / parser.colmap_path
+    if (model / "cameras.bin").is_file() or (model / "cameras.txt").is_file():
+        return
+    found = [layout for layout in COLMAP_LAYOUTS if (data / layout / "cameras.bin").is_file() or (data / layout / "cameras.txt").is_file()]
+    hint = (f"this folder has one in {data / found[0]}: add `--colmap-path {found[0]}` after `colmap`" if found
+            else f"expected cameras, images and points3D (.bin or .txt) there, or a folder whose model is in {' or '.join(str(l) for l in COLMAP_LAYOUTS[1:3])}")
+    raise DatasetInputError(f"No COLMAP model in {model}; {hint}.")
+
+
+def check_dataset(config: "FeatureDatamanagerConfig") -> None:
+    """The checks that need no image read: the COLMAP model exists and has points to seed the Gaussians. Run by the
+    trainer config before nerfstudio writes anything (`method.FeatureSplatTrainerConfig.save_config`) and again by the
+    datamanager (for callers that build it directly)."""
+    check_colmap_model(config)
+    check_seed_points(config)
+
+
 def check_seed_points(config: "FeatureDatamanagerConfig") -> None:
     """Stop with one sentence when the COLMAP model the Gaussians start from has (almost) no 3D points
     (nerfstudio's colmap dataparser otherwise fails deep inside with a tensor-shape error)."""
@@ -86,7 +116,7 @@ class FeatureDatamanager(FullImageDatamanager):
         local_rank: int = 0,
         **kwargs,
     ):
-        check_seed_points(config)
+        check_dataset(config)
         super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
         if torch.device(device).type == "cpu":
             self.config.cache_images = "gpu"  # i.e. "on the training device": no pinned memory without CUDA

@@ -13,7 +13,9 @@ splatfacto's optimisers, plus the supplement's: per-Gaussian features Adam lr 0.
 Learning-rate schedules decay over the paper's 12000 steps whatever the run's length (`MAX_STEPS`): rescaled
 to a 1500-step run's own length they gave references that registered worse in the one benchmark run made
 of them (README, "Training the reference model"), so short CPU runs keep the long decay.
-An InputError raised while nerfstudio trains (e.g. missing images) ends `ns-train` with its sentence.
+An InputError raised while nerfstudio trains (e.g. missing images) ends `ns-train` with its sentence. A dataset whose
+COLMAP model is missing or has no 3D points is refused before `ns-train` writes the run's config.yml
+(`FeatureSplatTrainerConfig.save_config`), so such a run leaves no directory behind.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from sg_nerfstudio.errors import install_input_error_hook
 from sg_nerfstudio.features import TeacherConfig
-from sg_nerfstudio.splat.datamanager import FeatureDatamanagerConfig
+from sg_nerfstudio.splat.datamanager import FeatureDatamanagerConfig, check_dataset
 from sg_nerfstudio.splat.model import FeatureSplatfactoModelConfig
 
 MAX_STEPS = 12000
@@ -103,7 +105,18 @@ def _adam(lr: float, lr_final: float | None = None, **scheduler) -> dict:
     }
 
 
-sg_feature_splat_config = TrainerConfig(
+@dataclass
+class FeatureSplatTrainerConfig(TrainerConfig):
+    """nerfstudio's TrainerConfig, checking the dataset before the run directory is written (`ns-train` saves config.yml
+    before it builds the datamanager)."""
+
+    def save_config(self) -> None:
+        if isinstance(self.pipeline.datamanager, FeatureDatamanagerConfig):
+            check_dataset(self.pipeline.datamanager)
+        super().save_config()
+
+
+sg_feature_splat_config = FeatureSplatTrainerConfig(
     method_name="sg-feature-splat",
     steps_per_eval_image=100,
     steps_per_eval_batch=0,

@@ -108,6 +108,7 @@ class FeatureSplatfactoModel(SplatfactoModel):
         self.psnr = PeakSignalNoiseRatio(data_range=1.0)
         self.ssim = SSIM(data_range=1.0, size_average=True, channel=3)
         self.lpips = _local_lpips()
+        self._lpips_warned = False
         self.step = 0
         self.crop_box = None
         if self.config.background_color == "random":
@@ -393,6 +394,9 @@ class FeatureSplatfactoModel(SplatfactoModel):
         metrics = {"psnr": float(self.psnr(gt, pred).item()), "ssim": float(self.ssim(gt, pred))}
         if self.lpips is not None:
             metrics["lpips"] = float(self.lpips(gt, pred))
+        elif not self._lpips_warned:  # said where the metric is missing (evaluation), not on every model load
+            CONSOLE.print(f"[yellow]LPIPS left out of the metrics: its AlexNet weights are not at {_lpips_weights()} and cannot be downloaded here.[/yellow]")
+            self._lpips_warned = True
         images = {"img": torch.cat([gt_rgb, predicted_rgb], dim=1)}
         if "teacher_features" in batch and "features" in outputs:
             teacher = batch["teacher_features"].to(self.device)
@@ -402,11 +406,15 @@ class FeatureSplatfactoModel(SplatfactoModel):
         return metrics, images
 
 
+def _lpips_weights() -> Path:
+    """Where torchmetrics' LPIPS looks for AlexNet's weights (the torch-hub cache)."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_WEIGHTS
+
+
 def _local_lpips():
-    """torchmetrics' LPIPS when AlexNet's weights are already in the torch-hub cache, else None (warned)."""
-    weights = Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_WEIGHTS
-    if not weights.is_file():
-        CONSOLE.print(f"[yellow]LPIPS disabled: its AlexNet weights are not at {weights} and cannot be downloaded here.[/yellow]")
+    """torchmetrics' LPIPS when AlexNet's weights are already in the torch-hub cache, else None (the first evaluation
+    says so: loading a model to register against it needs no LPIPS and prints nothing about it)."""
+    if not _lpips_weights().is_file():
         return None
     from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 

@@ -1035,3 +1035,30 @@ def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(refere
     for objective in ("features", "photometric"):  # the refine teacher describes renders, whatever the main objective
         own = refine_settings(replace(settings, objective=objective, teacher_input_size=64))
         assert (own.objective, own.render_teacher, own.teacher_input_size) == ("teacher-on-render", "dense-sift", None)
+
+
+def test_a_reference_trained_with_relative_paths_loads_from_any_directory(trained, tiny_scene, tmp_path, monkeypatch):
+    """nerfstudio stores `--data` and `--output-dir` as given; a run trained in W with relative ones names its dataset
+    relative to W. Read from elsewhere, the dataset is found through the run directory's own relative location."""
+    from sg_nerfstudio.initialisers.pipeline import reference_source_from_config
+    from sg_nerfstudio.splat.trained import open_trained_run
+
+    _, _, config = trained
+    workdir, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
+    shutil.copytree(tiny_scene / "reference", workdir / "scenes" / "tiny")
+    elsewhere.mkdir()
+    moved = copy.deepcopy(config)
+    moved.output_dir = Path("outputs")
+    moved.pipeline.datamanager.data = Path("scenes/tiny")
+    monkeypatch.chdir(workdir)
+    moved.save_config()  # as ns-train in workdir: outputs/<experiment>/<method>/<timestamp>/config.yml
+    run_dir = workdir / moved.get_base_dir()
+    shutil.copytree(config.get_base_dir() / "nerfstudio_models", run_dir / "nerfstudio_models")
+    shutil.copy(config.get_base_dir() / "dataparser_transforms.json", run_dir)
+    monkeypatch.chdir(elsewhere)
+    run = open_trained_run(run_dir / "config.yml")
+    assert Path(run.config.pipeline.datamanager.data) == workdir / "scenes" / "tiny"
+    assert reference_source_from_config(run_dir / "config.yml").colmap_path == workdir / "scenes" / "tiny" / "colmap" / "sparse" / "0"
+    shutil.rmtree(workdir / "scenes")  # a dataset found nowhere is still one sentence naming it
+    with pytest.raises(Exception, match=r"The reference dataset scenes/tiny named in .* was not found"):
+        open_trained_run(run_dir / "config.yml")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import yaml
@@ -62,7 +63,33 @@ def read_trainer_config(config_path: Path):
             f"Config {config_path} is a '{config.method_name}' model; expected an sg-feature-splat model "
             "(train one with `ns-train sg-feature-splat`)."
         )
+    resolve_dataset_path(config, config_path)
     return config
+
+
+def training_directory(config, config_path: Path) -> Optional[Path]:
+    """The directory `ns-train` ran in, when the config's run directory (output_dir / experiment / method / timestamp)
+    is relative and `config_path` lies in it; None otherwise. nerfstudio stores the paths it was given, so a run
+    trained with `--data scenes/x` in /work names `scenes/x`, which only /work can resolve."""
+    base = Path(config.get_base_dir())
+    run_dir = Path(config_path).resolve().parent
+    if base.is_absolute() or len(base.parts) >= len(run_dir.parts) or run_dir.parts[-len(base.parts):] != base.parts:
+        return None
+    return Path(*run_dir.parts[: -len(base.parts)])
+
+
+def resolve_dataset_path(config, config_path: Path) -> None:
+    """Make a relative dataset path of `config` (datamanager and dataparser `data`) absolute when it does not exist
+    from the current directory but does from the directory the run was trained in (`training_directory`): a trained
+    reference, an sg-bench results folder, is then usable from anywhere. Paths that resolve from here are left as
+    they are."""
+    origin = training_directory(config, config_path)
+    if origin is None:
+        return
+    for holder in (config.pipeline.datamanager, config.pipeline.datamanager.dataparser):
+        data = getattr(holder, "data", None)
+        if data is not None and not Path(data).is_absolute() and not Path(data).exists() and (origin / data).exists():
+            holder.data = origin / data
 
 
 def read_world_to_dataparser(config_path: Path) -> Sim3:

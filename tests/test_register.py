@@ -1062,3 +1062,56 @@ def test_a_reference_trained_with_relative_paths_loads_from_any_directory(traine
     shutil.rmtree(workdir / "scenes")  # a dataset found nowhere is still one sentence naming it
     with pytest.raises(Exception, match=r"The reference dataset scenes/tiny named in .* was not found"):
         open_trained_run(run_dir / "config.yml")
+
+
+class _CentreLosses:
+    """Stands in for PhotoLosses: each photo's loss is the squared distance of its moved camera centre from where
+    `truth` puts it (what a dense objective that sees the scale would prefer)."""
+
+    def __init__(self, meta, truth: Sim3):
+        from sg_nerfstudio.geometry.alignment import camera_centres
+
+        self.photos, self.centres = meta.photos, camera_centres(np.stack(meta.poses))
+        self.target = truth.apply(self.centres)
+
+    def __call__(self, transform, indices):
+        moved = transform.numpy().apply(self.centres)
+        return [torch.tensor(float(np.sum((moved[i] - self.target[i]) ** 2))) for i in indices], torch.ones(len(indices))
+
+
+def test_the_scale_one_anchored_photo_leaves_free_is_found_about_its_camera(meta, ground_truth):
+    """One photo's anchors fix its camera but not the Sim(3)'s scale about it: the search scales about that camera
+    (which stays where it was) to the factor the other photos prefer; with anchors from two photos nothing changes."""
+    from sg_nerfstudio.geometry.alignment import camera_centres
+    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+    from sg_nerfstudio.registration.keypoints import Anchoring
+
+    first = meta.photos[0]
+    centre = ground_truth.apply(camera_centres(first.cam_from_world[None])[0])
+    start = Sim3.from_parts(1.35, np.eye(3), np.zeros(3)).about(centre) @ ground_truth
+    anchors = lambda names: Anchoring(meta, [PhotoKeypoints(n, np.zeros((5, 2)), np.zeros((5, 3))) for n in names], Sim3.identity(), 1.0)
+    settings = RegistrationSettings(robust="none")
+    found, record = optimize.scale_about_the_one_anchored_photo(_CentreLosses(meta, ground_truth), anchors([first.name]), meta, start, settings)
+    assert record["photo"] == first.name and abs(record["factor"] - 1 / 1.35) < 0.02
+    assert np.allclose(found.apply(camera_centres(first.cam_from_world[None])), centre[None], atol=1e-9)  # the anchored camera stays
+    assert pose_errors(meta.poses, found, ground_truth).translation < 0.1 * pose_errors(meta.poses, start, ground_truth).translation
+    unchanged, none = optimize.scale_about_the_one_anchored_photo(_CentreLosses(meta, ground_truth), anchors([p.name for p in meta.photos[:2]]), meta, start, settings)
+    assert none is None and np.allclose(unchanged.matrix, start.matrix)
+
+
+def test_a_registration_with_one_anchored_photo_searches_the_scale_it_leaves_free(reference, meta, ground_truth):
+    """Anchors of one photo only, from a start 30% too large about that photo's camera: the keypoints alone cannot see
+    the scale (the keypoint fit ends where it started in translation), the registration's scale search brings the
+    other photos' cameras most of the way back, and records the search in the result."""
+    from sg_nerfstudio.geometry.alignment import camera_centres
+
+    anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=3)[:1]
+    photo = next(p for p in meta.photos if p.name == anchors[0].name)
+    centre = ground_truth.apply(camera_centres(photo.cam_from_world[None])[0])
+    start = Sim3.from_parts(1.3, np.eye(3), np.zeros(3)).about(centre) @ ground_truth
+    settings = RegistrationSettings(**{**FAST, "steps": 10}, objective="teacher-on-render", keypoint_weight=3.0,
+                                    keypoint_prealign_steps=200, prealigned_steps=0)
+    result = register(reference, meta, start, settings, keypoints=anchors)
+    assert result.scale_search is not None and result.scale_search["photo"] == photo.name
+    before, after = (pose_errors(meta.poses, t, ground_truth).translation for t in (start, result.transform))
+    assert after < 0.3 * before, (before, after, result.scale_search)

@@ -231,17 +231,38 @@ def blank_meta_image(scene: Path, target: Path, keep: int = 0) -> Path:
     return meta_dir
 
 
-def test_colmap_start_from_two_registered_photos_and_not_from_one(initialiser, scene, tmp_path):
+def test_colmap_start_from_two_registered_photos_and_from_one(initialiser, scene, cache_dir, tmp_path):
     """A meta-image where only two photos can register (a 3-photo meta-image with one weak photo): their poses give
-    the Sim(3) (rotation from both orientations, scale and translation from both centres); one photo alone does not."""
+    the Sim(3) (rotation from both orientations, scale and translation from both centres). One photo alone gives its
+    pose and a scale from its depths, said in the result's note; with `one_photo_start` off it is a failure."""
     two = load_meta_image(blank_meta_image(scene, tmp_path, keep=2))
     result = initialiser(two, "colmap")
     assert result.succeeded, result.failure
     assert len(result.agreeing_photos) == 2
     errors = pose_errors([p.cam_from_world for p in two.photos], result.transform, ground_truth(scene / "meta" / "front"))
     assert errors.rotation_deg < 2.0 and errors.translation < 0.05, (errors.rotation_deg, errors.translation)
-    one = initialiser(load_meta_image(blank_meta_image(scene, tmp_path, keep=1)), "colmap")
-    assert not one.succeeded and "only 1 of 5 photos registered to the reference (at least 2 are needed)" in one.failure
+    single = load_meta_image(blank_meta_image(scene, tmp_path, keep=1))
+    one = initialiser(single, "colmap")
+    assert one.succeeded and one.agreeing_photos == [single.photos[0].name] and "scale is a first guess from its depths" in one.note
+    errors = pose_errors([p.cam_from_world for p in single.photos], one.transform, ground_truth(scene / "meta" / "front"))
+    assert errors.rotation_deg < 2.0 and errors.translation < 0.3, (errors.rotation_deg, errors.translation)
+    first = pose_errors([single.photos[0].cam_from_world], one.transform, ground_truth(scene / "meta" / "front"))
+    assert first.rotation_deg < 1.0 and first.translation < 0.05  # the registered photo's own camera is placed
+    classical = Initialiser(initialiser.source, InitialiserSettings(cache_dir=cache_dir, one_photo_start=False))(single, "colmap")
+    assert not classical.succeeded and "only 1 of 5 photos registered to the reference (at least 2 are needed)" in classical.failure
+
+
+def test_similarity_from_one_photo_is_exact_with_the_true_depths():
+    """The registered photo's pose in both frames fixes rotation and centre; the ratio of its depths, the scale."""
+    from sg_nerfstudio.initialisers.estimate import similarity_from_one_photo
+
+    rng = np.random.default_rng(5)
+    truth = Sim3.random(rng, 70.0, 3.0, 0.6)
+    rotation = Sim3.random(rng, 40.0, 0.0, 0.0).rotation
+    cam_from_meta = np.concatenate([rotation, rng.normal(size=(3, 1))], axis=1)
+    found = similarity_from_one_photo(cam_from_meta, truth.move_camera(cam_from_meta), 2.0, 2.0 * truth.scale)
+    assert np.allclose(found, truth.matrix, atol=1e-9)
+    assert similarity_from_one_photo(cam_from_meta, truth.move_camera(cam_from_meta), 0.0, 1.0) is None
 
 
 @pytest.mark.parametrize("method", METHODS)

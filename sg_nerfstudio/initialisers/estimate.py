@@ -185,6 +185,22 @@ def similarity_from_poses(
     return np.asarray(refit), inliers
 
 
+def similarity_from_one_photo(cam_from_meta: Array, cam_from_reference: Array, meta_depth: float, reference_depth: float) -> Optional[Array]:
+    """Sim(3) meta -> reference [4, 4] from one photo's pose in both frames ([3, 4] world-to-camera each): rotation and
+    centre from the two poses, scale from the median depth of what the photo sees in each (`meta_depth`: its own sparse
+    points in the meta-image; `reference_depth`: its inlier reference points in the registered camera). One camera fixes
+    6 of the 7 degrees of freedom; the depth ratio is a first guess of the scale about it, for the registration to search
+    (`registration.optimize.scale_about_the_one_anchored_photo`). None without positive depths."""
+    if not (np.isfinite(meta_depth) and np.isfinite(reference_depth) and meta_depth > 0 and reference_depth > 0):
+        return None
+    scale = reference_depth / meta_depth
+    rotation = cam_from_reference[:, :3].T @ cam_from_meta[:, :3]
+    matrix = np.eye(4)
+    matrix[:3, :3] = scale * rotation
+    matrix[:3, 3] = centre_of(cam_from_reference) - scale * rotation @ centre_of(cam_from_meta)
+    return matrix
+
+
 @dataclass(frozen=True)
 class GeneralizedSettings:
     max_error: float = 12.0

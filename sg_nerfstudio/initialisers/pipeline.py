@@ -39,6 +39,7 @@ from sg_nerfstudio.initialisers.estimate import (
     generalized_similarity,
     register_photo,
     similarity_from_centres,
+    similarity_from_one_photo,
     similarity_from_poses,
 )
 from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, SiftSettings, VerifiedMatcher, default_cache_dir
@@ -78,6 +79,10 @@ class InitialiserSettings:
     """RANSAC inlier distance of the camera-centre Sim(3), reference world units. Default: 5% of the median
     distance of the reference cameras to their centroid (the reference's scale is arbitrary; the paper's 3
     was metres of GPS-scaled references)."""
+    one_photo_start: bool = True
+    """colmap: when exactly one photo registers, start from its pose with the scale of its depths
+    (`estimate.similarity_from_one_photo`; the registration then searches the scale with the dense objective) rather
+    than failing. False: such a meta-image fails to initialise, as a classical pipeline would."""
     min_registered_photos: int = 2
     """colmap: fewest photos that must register and agree with the Sim(3). Two suffice for the pose-based similarity
     (rotation from their orientations, scale and translation from their two centres, agreement checked on both) and
@@ -116,6 +121,8 @@ class InitResult:
     photos: list[PhotoPose]
     agreeing_photos: list[str]
     wall_time_s: float
+    note: Optional[str] = None
+    """What the user should know of a transform that was found (e.g. the colmap start of a single registered photo)."""
 
     @property
     def succeeded(self) -> bool:
@@ -129,6 +136,7 @@ class InitResult:
             "failure": self.failure,
             "wall_time_s": round(self.wall_time_s, 3),
             "agreeing_photos": self.agreeing_photos,
+            "note": self.note,
             "photos": [
                 {"name": p.name, "registered": p.registered, "inliers": p.num_inliers, "correspondences": p.num_correspondences}
                 for p in self.photos
@@ -317,6 +325,8 @@ class Initialiser:
             advance()
         registered = [(o, p) for o, p in zip(observations, poses) if p.registered]
         needed = self.settings.min_registered_photos
+        if len(registered) == 1 and self.settings.one_photo_start:
+            return self._one_photo(meta, poses, *registered[0])
         if len(registered) < needed:
             return self._failure("colmap", meta, poses, f"only {len(registered)} of {len(poses)} photos registered to the reference (at least {needed} are needed)")
         meta_centres = np.stack([centre_of(o.cam_from_meta) for o, _ in registered])
@@ -336,6 +346,23 @@ class Initialiser:
         transform, inliers = found
         agreeing = [p.name for (_, p), keep in zip(registered, inliers) if keep]
         return InitResult("colmap", meta.name, Sim3(transform), None, poses, agreeing, 0.0)
+
+    def _one_photo(self, meta: MetaImage, poses: list[PhotoPose], observations: Observations, pose: PhotoPose) -> InitResult:
+        """The colmap start when exactly one photo registered (`similarity_from_one_photo`): its pose, and the scale
+        from the median depths of what it sees in the meta-image and in the reference."""
+        photo = next(p for p in meta.photos if p.name == observations.name)
+        meta_depths = photo.point_depths[photo.point_depths > 0]
+        inliers = observations.points3D[pose.inlier_mask]
+        reference_depths = (inliers @ pose.cam_from_reference[:, :3].T + pose.cam_from_reference[:, 3])[:, 2]
+        transform = similarity_from_one_photo(
+            observations.cam_from_meta, pose.cam_from_reference,
+            float(np.median(meta_depths)) if len(meta_depths) else float("nan"),
+            float(np.median(reference_depths[reference_depths > 0])) if (reference_depths > 0).any() else float("nan"),
+        )
+        if transform is None:
+            return self._failure("colmap", meta, poses, f"only {photo.name} of {len(poses)} photos registered to the reference, and its depths give no scale")
+        return InitResult("colmap", meta.name, Sim3(transform), None, poses, [photo.name], 0.0,
+                          note=f"one photo registered ({photo.name}): the scale is a first guess from its depths")
 
     def _generalized(self, meta: MetaImage, observations: list[Observations]) -> InitResult:
         advance = self.progress(f"Generalized pose of {meta.name}", 1)

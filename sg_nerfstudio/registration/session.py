@@ -319,6 +319,8 @@ def compute_initial_transform(initialiser: Initialiser, meta: MetaImage, method:
         Console(stderr=True).print(Text(outcome.failure.rstrip(".") + "; no result is written for it.", style="red"), soft_wrap=True)
         return None
     console.print(f"{meta.name}: '{method}' initialisation from {len(outcome.agreeing_photos)} agreeing photos in {outcome.wall_time_s:.1f} s.")
+    if outcome.note:
+        console.print(f"[yellow]{meta.name}: {outcome.note}.[/yellow]", soft_wrap=True)
     return outcome.transform
 
 

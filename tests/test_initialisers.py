@@ -250,6 +250,8 @@ def test_colmap_start_from_two_registered_photos_and_from_one(initialiser, scene
     assert first.rotation_deg < 1.0 and first.translation < 0.05  # the registered photo's own camera is placed
     classical = Initialiser(initialiser.source, InitialiserSettings(cache_dir=cache_dir, one_photo_start=False))(single, "colmap")
     assert not classical.succeeded and "only 1 of 5 photos registered to the reference (at least 2 are needed)" in classical.failure
+    generalized = initialiser(single, "generalized")  # no rig of two photos: the same start from the one that registers
+    assert generalized.succeeded and generalized.method == "generalized" and np.allclose(generalized.transform.matrix, one.transform.matrix)
 
 
 def test_similarity_from_one_photo_is_exact_with_the_true_depths():

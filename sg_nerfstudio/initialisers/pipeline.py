@@ -80,7 +80,8 @@ class InitialiserSettings:
     distance of the reference cameras to their centroid (the reference's scale is arbitrary; the paper's 3
     was metres of GPS-scaled references)."""
     one_photo_start: bool = True
-    """colmap: when exactly one photo registers, start from its pose with the scale of its depths
+    """When exactly one photo registers (colmap), or the generalized pose finds no rig of two photos and exactly one
+    photo registers on its own (generalized): start from that photo's pose with the scale of its depths
     (`estimate.similarity_from_one_photo`; the registration then searches the scale with the dense objective) rather
     than failing. False: such a meta-image fails to initialise, as a classical pipeline would."""
     min_registered_photos: int = 2
@@ -347,7 +348,7 @@ class Initialiser:
         agreeing = [p.name for (_, p), keep in zip(registered, inliers) if keep]
         return InitResult("colmap", meta.name, Sim3(transform), None, poses, agreeing, 0.0)
 
-    def _one_photo(self, meta: MetaImage, poses: list[PhotoPose], observations: Observations, pose: PhotoPose) -> InitResult:
+    def _one_photo(self, meta: MetaImage, poses: list[PhotoPose], observations: Observations, pose: PhotoPose, method: str = "colmap") -> InitResult:
         """The colmap start when exactly one photo registered (`similarity_from_one_photo`): its pose, and the scale
         from the median depths of what it sees in the meta-image and in the reference."""
         photo = next(p for p in meta.photos if p.name == observations.name)
@@ -360,8 +361,8 @@ class Initialiser:
             float(np.median(reference_depths[reference_depths > 0])) if (reference_depths > 0).any() else float("nan"),
         )
         if transform is None:
-            return self._failure("colmap", meta, poses, f"only {photo.name} of {len(poses)} photos registered to the reference, and its depths give no scale")
-        return InitResult("colmap", meta.name, Sim3(transform), None, poses, [photo.name], 0.0,
+            return self._failure(method, meta, poses, f"only {photo.name} of {len(poses)} photos registered to the reference, and its depths give no scale")
+        return InitResult(method, meta.name, Sim3(transform), None, poses, [photo.name], 0.0,
                           note=f"one photo registered ({photo.name}): the scale is a first guess from its depths")
 
     def _generalized(self, meta: MetaImage, observations: list[Observations]) -> InitResult:
@@ -369,6 +370,11 @@ class Initialiser:
         pose = self.generalized_pose(meta, observations)
         advance()
         photos = [PhotoPose(o.name, None, 0 if pose is None else pose.inliers_per_photo.get(o.name, 0), len(o.points2D)) for o in observations]
+        if pose is None and self.settings.one_photo_start:
+            alone = [(o, register_photo(o, self.settings.absolute_pose)) for o in observations]
+            registered = [(o, p) for o, p in alone if p.registered]
+            if len(registered) == 1:  # one photo cannot form a rig: the colmap initialiser's start from it
+                return self._one_photo(meta, [p for _, p in alone], *registered[0], method="generalized")
         if pose is None:
             total = sum(len(o.points2D) for o in observations)
             settings = self.settings.generalized

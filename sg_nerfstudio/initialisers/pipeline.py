@@ -349,8 +349,8 @@ class Initialiser:
         return InitResult("colmap", meta.name, Sim3(transform), None, poses, agreeing, 0.0)
 
     def _one_photo(self, meta: MetaImage, poses: list[PhotoPose], observations: Observations, pose: PhotoPose, method: str = "colmap") -> InitResult:
-        """The colmap start when exactly one photo registered (`similarity_from_one_photo`): its pose, and the scale
-        from the median depths of what it sees in the meta-image and in the reference."""
+        """The start of `method` when exactly one photo registered (`similarity_from_one_photo`): its pose, and the scale
+        from the median depths of what it sees in the meta-image and in the reference (`one_photo_start`)."""
         photo = next(p for p in meta.photos if p.name == observations.name)
         meta_depths = photo.point_depths[photo.point_depths > 0]
         inliers = observations.points3D[pose.inlier_mask]

@@ -277,13 +277,13 @@ def test_too_few_matches_is_a_reported_failure(method, initialiser, scene, tmp_p
 
 
 def test_baseline_cli_writes_transforms_metrics_and_failures(scene, cache_dir, tmp_path, capsys):
-    blank = blank_meta_image(scene, tmp_path)
+    blank, single = blank_meta_image(scene, tmp_path), blank_meta_image(scene, tmp_path, keep=1)
     out = tmp_path / "baseline"
+    gt = str(scene / "meta" / "front" / "gt_transform.json")
     code = baseline_main([
         "--reference-colmap", str(scene / "reference" / "colmap" / "sparse" / "0"), "--reference-images", str(scene / "reference" / "images"),
-        "--meta-image", str(scene / "meta" / "front"), "--meta-image", str(blank), "--output-dir", str(out),
-        "--gt", str(scene / "meta" / "front" / "gt_transform.json"), "--gt", str(scene / "meta" / "front" / "gt_transform.json"),
-        "--initialiser.cache-dir", str(cache_dir),
+        "--meta-image", str(scene / "meta" / "front"), "--meta-image", str(blank), "--meta-image", str(single), "--output-dir", str(out),
+        "--gt", gt, "--gt", gt, "--gt", gt, "--initialiser.cache-dir", str(cache_dir),
     ])
     captured = capsys.readouterr()
     assert code == 0, captured.err
@@ -294,6 +294,8 @@ def test_baseline_cli_writes_transforms_metrics_and_failures(scene, cache_dir, t
     assert metrics["meta_images"]["front"]["errors"]["delta_R_deg"] < 2.0
     assert not (out / "blank").exists()
     assert "failed for meta-image 'blank'" in captured.err
+    assert "scale is a first guess from its depths" in metrics["meta_images"]["blank-but-1"]["note"]  # one photo registered
+    assert "blank-but-1: one photo registered" in captured.out.replace("\n", " ") + captured.err.replace("\n", " ")
 
 
 def test_baseline_cli_missing_reference_model_is_one_sentence_and_no_output(scene, tmp_path, capsys):

@@ -93,6 +93,8 @@ def run(args: InitBaselineArgs, console: Console) -> list[dict]:
     for entry in entries:
         if entry["outcome"].failure:
             Console(stderr=True).print(Text(entry["outcome"].failure, style="red"), soft_wrap=True)
+        elif entry["outcome"].note:
+            console.print(f"[yellow]{entry['meta'].name}: {entry['outcome'].note}.[/yellow]", soft_wrap=True)
     return entries
 
 
@@ -114,6 +116,7 @@ def write_outputs(target: Path, args: InitBaselineArgs, entries: list[dict]) -> 
                     "failure": e["outcome"].failure,
                     "wall_time_s": round(e["outcome"].wall_time_s, 3),
                     "agreeing_photos": len(e["outcome"].agreeing_photos),
+                    "note": e["outcome"].note,
                     "photos": len(e["meta"].photos),
                     **({"errors": e["errors"].as_dict()} if e["errors"] is not None else {}),
                 }

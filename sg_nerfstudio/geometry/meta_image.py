@@ -267,9 +267,14 @@ def _focal_and_centre(camera: pycolmap.Camera) -> tuple[float, float, float, flo
     )
 
 
+def holds_colmap_model(directory: Path) -> bool:
+    """Whether `directory` holds a COLMAP model (its images file, binary or text)."""
+    return (Path(directory) / "images.bin").exists() or (Path(directory) / "images.txt").exists()
+
+
 def find_model(directory: Path) -> Path:
     for candidate in (directory / "sparse" / "0", directory / "sparse"):
-        if (candidate / "images.bin").exists() or (candidate / "images.txt").exists():
+        if holds_colmap_model(candidate):
             return candidate
     raise MetaImageError(
         f"No COLMAP model in {directory}: expected {directory / 'sparse' / '0'} or {directory / 'sparse'} "

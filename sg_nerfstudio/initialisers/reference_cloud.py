@@ -24,6 +24,7 @@ from PIL import Image as PILImage
 
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.geometry.meta_image import holds_colmap_model
 from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, VerifiedMatcher
 from sg_nerfstudio.initialisers.retrieval import reference_pairs
 
@@ -46,7 +47,7 @@ class ReferenceSource:
     def load(self) -> pycolmap.Reconstruction:
         """The reconstruction, validated: every registered image exists in `images_path`."""
         model = Path(self.colmap_path)
-        if not ((model / "images.bin").exists() or (model / "images.txt").exists()):
+        if not holds_colmap_model(model):
             raise ReferenceSourceError(
                 f"Reference COLMAP model {model} was not found; expected a folder with cameras, images and points3D (.bin or .txt)."
             )

@@ -25,6 +25,7 @@ from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatama
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import FeatureCache, TeacherConfig, build_teacher, extract_all, teacher_feature_dim, teacher_grid_size
+from sg_nerfstudio.geometry.meta_image import holds_colmap_model
 
 PCA_SAMPLE_SIZE = 20000
 MIN_SEED_POINTS = 4
@@ -49,9 +50,9 @@ def check_colmap_model(config: "FeatureDatamanagerConfig") -> None:
         return
     data = Path(config.data) if config.data is not None else Path(parser.data)  # as FullImageDatamanager resolves it
     model = data / parser.colmap_path
-    if (model / "cameras.bin").is_file() or (model / "cameras.txt").is_file():
+    if holds_colmap_model(model):
         return
-    found = [layout for layout in COLMAP_LAYOUTS if (data / layout / "cameras.bin").is_file() or (data / layout / "cameras.txt").is_file()]
+    found = [layout for layout in COLMAP_LAYOUTS if holds_colmap_model(data / layout)]
     hint = (f"this folder has one in {data / found[0]}: add `--colmap-path {found[0]}` after `colmap`" if found
             else f"expected cameras, images and points3D (.bin or .txt) there, or a folder whose model is in {' or '.join(str(l) for l in COLMAP_LAYOUTS[1:3])}")
     raise DatasetInputError(f"No COLMAP model in {model}; {hint}.")

@@ -1041,7 +1041,7 @@ def test_a_reference_trained_with_relative_paths_loads_from_any_directory(traine
     """nerfstudio stores `--data` and `--output-dir` as given; a run trained in W with relative ones names its dataset
     relative to W. Read from elsewhere, the dataset is found through the run directory's own relative location."""
     from sg_nerfstudio.initialisers.pipeline import reference_source_from_config
-    from sg_nerfstudio.splat.trained import open_trained_run
+    from sg_nerfstudio.splat.trained import load_pipeline, open_trained_run
 
     _, _, config = trained
     workdir, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
@@ -1050,6 +1050,8 @@ def test_a_reference_trained_with_relative_paths_loads_from_any_directory(traine
     moved = copy.deepcopy(config)
     moved.output_dir = Path("outputs")
     moved.pipeline.datamanager.data = Path("scenes/tiny")
+    moved.pipeline.datamanager.teacher = replace(moved.pipeline.datamanager.teacher, cache_dir=Path("cache"))
+    (workdir / "cache").mkdir()
     monkeypatch.chdir(workdir)
     moved.save_config()  # as ns-train in workdir: outputs/<experiment>/<method>/<timestamp>/config.yml
     run_dir = workdir / moved.get_base_dir()
@@ -1058,6 +1060,9 @@ def test_a_reference_trained_with_relative_paths_loads_from_any_directory(traine
     monkeypatch.chdir(elsewhere)
     run = open_trained_run(run_dir / "config.yml")
     assert Path(run.config.pipeline.datamanager.data) == workdir / "scenes" / "tiny"
+    assert Path(run.config.pipeline.datamanager.teacher.cache_dir) == workdir / "cache"
+    _, checkpoint, _ = load_pipeline(run, "cpu", "inference")  # nerfstudio's eval_setup would look under the current directory
+    assert checkpoint.parent == run_dir / "nerfstudio_models" and not list(elsewhere.iterdir())
     assert reference_source_from_config(run_dir / "config.yml").colmap_path == workdir / "scenes" / "tiny" / "colmap" / "sparse" / "0"
     shutil.rmtree(workdir / "scenes")  # a dataset found nowhere is still one sentence naming it
     with pytest.raises(Exception, match=r"The reference dataset scenes/tiny named in .* was not found"):

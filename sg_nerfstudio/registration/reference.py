@@ -21,7 +21,7 @@ from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.render import rasterize
 from sg_nerfstudio.render.projection import covariances_from_quats_scales
-from sg_nerfstudio.splat.trained import open_trained_run
+from sg_nerfstudio.splat.trained import load_pipeline, open_trained_run
 
 
 @dataclass
@@ -92,13 +92,9 @@ class ReferenceModel:
 
 def load_reference(config_path: Path, device: str = "cpu") -> ReferenceModel:
     """Load the trained model read-only: parameters frozen, eval mode, checkpoint untouched."""
-    from nerfstudio.utils.eval_utils import eval_load_checkpoint
-
     run = open_trained_run(config_path)
     config = run.config
-    pipeline = config.pipeline.setup(device=device, test_mode="inference")
-    pipeline.eval()
-    checkpoint_path, _ = eval_load_checkpoint(config, pipeline)
+    pipeline, checkpoint_path, _ = load_pipeline(run, device, "inference")
     model = pipeline.model
     for parameter in model.parameters():
         parameter.requires_grad_(False)

@@ -82,14 +82,20 @@ def resolve_dataset_path(config, config_path: Path) -> None:
     """Make a relative dataset path of `config` (datamanager and dataparser `data`) absolute when it does not exist
     from the current directory but does from the directory the run was trained in (`training_directory`): a trained
     reference, an sg-bench results folder, is then usable from anywhere. Paths that resolve from here are left as
-    they are."""
+    they are. A relative teacher feature cache (sg-bench's) is taken from the training directory likewise, so that
+    loading the model elsewhere neither misses it nor creates a copy under the current directory."""
     origin = training_directory(config, config_path)
     if origin is None:
         return
-    for holder in (config.pipeline.datamanager, config.pipeline.datamanager.dataparser):
+    datamanager = config.pipeline.datamanager
+    for holder in (datamanager, datamanager.dataparser):
         data = getattr(holder, "data", None)
         if data is not None and not Path(data).is_absolute() and not Path(data).exists() and (origin / data).exists():
             holder.data = origin / data
+    teacher = getattr(datamanager, "teacher", None)
+    cache = getattr(teacher, "cache_dir", None)
+    if cache is not None and not Path(cache).is_absolute() and not Path(cache).exists() and (origin / cache).exists():
+        teacher.cache_dir = origin / cache
 
 
 def read_world_to_dataparser(config_path: Path) -> Sim3:
@@ -120,3 +126,15 @@ def open_trained_run(config_path: Path) -> TrainedRun:
         raise ReferenceModelError(f"No checkpoint (step-*.ckpt) in {model_dir}.")
     config.load_dir = model_dir
     return TrainedRun(config, config_path, checkpoints, world_to_dataparser)
+
+
+def load_pipeline(run: TrainedRun, device: str, test_mode: str):
+    """(pipeline in eval mode, checkpoint path, step) of a checked run, as nerfstudio's `eval_setup` builds them but from
+    `run.config`: its dataset path resolved (`resolve_dataset_path`) and its checkpoint directory beside config.yml,
+    where `eval_setup` would re-read config.yml and look for both relative to the current directory."""
+    from nerfstudio.utils.eval_utils import eval_load_checkpoint
+
+    pipeline = run.config.pipeline.setup(device=device, test_mode=test_mode)
+    pipeline.eval()
+    checkpoint_path, step = eval_load_checkpoint(run.config, pipeline)
+    return pipeline, Path(checkpoint_path), step

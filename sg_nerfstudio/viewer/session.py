@@ -19,10 +19,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
+import torch
 import tyro
 from rich.console import Console
 
-from sg_nerfstudio.splat.trained import open_trained_run
+from sg_nerfstudio.splat.trained import load_pipeline, open_trained_run
 from sg_nerfstudio.viewer.inputs import read_registrations
 from sg_nerfstudio.viewer.scene import RegistrationScene
 
@@ -110,17 +111,18 @@ def stop_viser_server(server, timeout: float) -> None:
 
 def start_viewer(args: ViewRegistrationArgs, console: Console) -> ViewerSession:
     """Validate the inputs, load the model as ns-viewer does, start nerfstudio's Viewer and draw the cameras."""
-    from nerfstudio.utils.eval_utils import eval_setup  # first: importing writer first is circular in nerfstudio
+    from nerfstudio.utils import eval_utils  # noqa: F401  first: importing writer first is circular in nerfstudio
     from nerfstudio.utils import writer
     from nerfstudio.viewer.viewer import Viewer
 
     run = open_trained_run(args.load_config)
     registrations = read_registrations(args.registration, args.meta_image, args.gt, args.load_config, console)
-    config, pipeline, _, step = eval_setup(args.load_config, test_mode="test")
+    pipeline, _, step = load_pipeline(run, "cuda" if torch.cuda.is_available() else "cpu", "test")
+    config = run.config
     config.viewer.websocket_port = args.port
     config.viewer.websocket_host = args.host
     viewer = Viewer(
-        config.viewer, log_filename=config.get_base_dir() / config.viewer.relative_log_filename,
+        config.viewer, log_filename=run.config_path.parent / config.viewer.relative_log_filename,
         datapath=pipeline.datamanager.get_datapath(), pipeline=pipeline, share=False, train_lock=threading.Lock(),
     )
     config.logging.local_writer.enable = False  # as ns-viewer: no log lines, but the viewer's speed statistics

@@ -63,7 +63,7 @@ def read_trainer_config(config_path: Path):
             f"Config {config_path} is a '{config.method_name}' model; expected an sg-feature-splat model "
             "(train one with `ns-train sg-feature-splat`)."
         )
-    resolve_dataset_path(config, config_path)
+    resolve_relative_paths(config, config_path)
     return config
 
 
@@ -78,7 +78,7 @@ def training_directory(config, config_path: Path) -> Optional[Path]:
     return Path(*run_dir.parts[: -len(base.parts)])
 
 
-def resolve_dataset_path(config, config_path: Path) -> None:
+def resolve_relative_paths(config, config_path: Path) -> None:
     """Make a relative dataset path of `config` (datamanager and dataparser `data`) absolute when it does not exist
     from the current directory but does from the directory the run was trained in (`training_directory`): a trained
     reference, an sg-bench results folder, is then usable from anywhere. Paths that resolve from here are left as
@@ -130,7 +130,7 @@ def open_trained_run(config_path: Path) -> TrainedRun:
 
 def load_pipeline(run: TrainedRun, device: str, test_mode: str):
     """(pipeline in eval mode, checkpoint path, step) of a checked run, as nerfstudio's `eval_setup` builds them but from
-    `run.config`: its dataset path resolved (`resolve_dataset_path`) and its checkpoint directory beside config.yml,
+    `run.config`: its dataset path resolved (`resolve_relative_paths`) and its checkpoint directory beside config.yml,
     where `eval_setup` would re-read config.yml and look for both relative to the current directory."""
     from nerfstudio.utils.eval_utils import eval_load_checkpoint
 

@@ -97,6 +97,18 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
                      "| 8, 0.13, 8% | short | 3 |", "| 8, 0.13, 8% | wide-short | 3 |", "| outcome (ground truth) | registered |", "Accurate results flagged registered"):
         assert expected in results, expected
     assert (output / "robustness_noise.png").stat().st_size > 0 and (output / "robustness_size.png").stat().st_size > 0
+    assert all(isinstance(r["anchored_photos"], int) for r in records if r["after"] is not None)
+
+    # --anchored-photos reaches the runs (the tiny suite's SIFT gives no anchors: at most 1 either way; the choice
+    # itself is test_anchored_photos_keeps_the_photos_with_the_most_correspondences).
+    one = tmp_path / "one-anchor"
+    shutil.copytree(output / "references", one / "references")
+    assert bench_main([str(suite), "--output", str(one), "--config", str(preset), "--train-steps", "20", "--initialisers", "perturbed",
+                       "--anchored-photos", "1"]) == 0, capsys.readouterr().err
+    anchored = [json.loads(p.read_text()) for p in sorted((one / "runs").glob("*/*/*.json"))]
+    assert len(anchored) == 3 and all(r["anchored_photos"] <= 1 for r in anchored)
+    markers = sorted((one / "references").glob("*/reference.json"))
+    assert markers and all(m.read_text() == (output / "references" / m.parent.name / "reference.json").read_text() for m in markers)  # reused
 
     # Resumption: finished runs and references are reused; a missing record is run again.
     stamps = {p: p.stat().st_mtime_ns for p in [*(output / "runs").glob("*/*/*.json"), *(output / "references").glob("*/reference.json")]}
@@ -223,3 +235,19 @@ def test_scaling_goals_are_judged_from_the_measured_records():
     assert lines["two registrations at once: each <= about 2x its solo time"] == ["2.20x (the slower)", "-", "no"]
     assert lines["training 1500 steps of stand-in <= 10 min"] == ["6.3 min", "15.0 min", "yes"]
     assert lines["... same PSNR (held-out / training views, dB)"][2] == "-0.80 / +0.20 dB"
+
+
+def test_anchored_photos_keeps_the_photos_with_the_most_correspondences():
+    """`sg-bench --anchored-photos N`: a run's anchors are those of the N photos with the most correspondences."""
+    from sg_nerfstudio.bench.runs import BenchOptions, SceneRunner
+    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+    from sg_nerfstudio.registration.settings import RegistrationSettings
+
+    photos = [PhotoKeypoints(name, np.zeros((count, 2)), np.zeros((count, 3))) for name, count in (("a", 12), ("b", 40), ("c", 25))]
+    runner = SceneRunner.__new__(SceneRunner)  # no reference or scene needed for the choice
+    runner.initialiser = type("Stub", (), {"keypoints": lambda self, subject: photos})()
+    runner.reference_unusable = None
+    settings = RegistrationSettings(keypoint_weight=1.0)
+    for count, expected in ((1, ["b"]), (2, ["b", "c"]), (0, ["a", "b", "c"])):
+        runner.options = BenchOptions(settings=settings, anchored_photos=count)
+        assert [k.name for k in runner.keypoints(None, settings)] == expected

@@ -75,6 +75,8 @@ class BenchOptions:
     """Other presets (name -> settings) the noise runs are repeated with."""
     preset: str = "fast-cpu"
     """Name of `settings` (the `--config` preset), recorded in every run it refines."""
+    anchored_photos: int = 0
+    """Keypoint anchors of only this many photos per meta-image, those with the most correspondences (0: all)."""
 
 
 @dataclass
@@ -193,6 +195,7 @@ class SceneRunner:
             base = self.options.alternatives[spec.mode] if spec.mode else self.options.settings
             settings = replace(base, seed=seed, **spec.overrides)
             keypoints = self.keypoints(subject, settings)
+            record["anchored_photos"] = len(keypoints)
             total = total_steps(settings, anchored=bool(keypoints))
             try:
                 result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step, total), keypoints=keypoints)
@@ -209,14 +212,18 @@ class SceneRunner:
 
     def keypoints(self, subject: MetaImage, settings: RegistrationSettings) -> list[PhotoKeypoints]:
         """The keypoint anchors of a run whose settings weigh them: the same for every start of a meta-image
-        (the correspondences do not depend on it); none when the reference's SIFT cloud cannot be built."""
+        (the correspondences do not depend on it), of the `anchored_photos` photos with the most correspondences when
+        that is set; none when the reference's SIFT cloud cannot be built."""
         if settings.keypoint_weight <= 0 or self.reference_unusable is not None:
             return []
         try:
-            return self.initialiser.keypoints(subject)
+            keypoints = self.initialiser.keypoints(subject)
         except InputError as error:
             self.reference_unusable = str(error)
             return []
+        if self.options.anchored_photos > 0:
+            keypoints = sorted(keypoints, key=lambda photo: -len(photo.points2D))[: self.options.anchored_photos]
+        return keypoints
 
     def start(self, meta: BenchmarkMeta, subject: MetaImage, spec: RunSpec, rng: np.random.Generator) -> tuple[Optional[Sim3], Optional[str]]:
         """The initial transform of a run, or (None, the initialiser's failure sentence)."""

@@ -67,6 +67,10 @@ class BenchArgs:
     """Meta-image sizes (>= 3) of random photo subsets, for the curve of final error vs meta-image size."""
     size_samples: int = 1
     """Random subsets per size and meta-image (paper: 5)."""
+    anchored_photos: int = 0
+    """Keep the keypoint anchors of only this many photos per meta-image, those with the most correspondences (0: all):
+    registration where few photos match the reference (night, occluders). Starts are unchanged. Use its own --output:
+    records made with another value would be reused."""
     seed: int = 0
     threads: Optional[int] = None
     """CPU threads of torch and numba (default: the cores this process may use)."""
@@ -83,7 +87,7 @@ def run(args: BenchArgs, console: Console) -> Path:
         settings=load_preset(args.config), train_steps=args.train_steps, initialisers=args.initialisers,
         ablations=args.ablations, noise_levels=args.noise_levels, sizes=args.sizes, size_samples=args.size_samples, seed=args.seed,
         noise_samples=args.noise_samples, alternatives={Path(name).stem: load_preset(name) for name in args.compare_config},
-        preset=Path(args.config).stem,
+        preset=Path(args.config).stem, anchored_photos=args.anchored_photos,
     )
     args.output.mkdir(parents=True, exist_ok=True)
     train_seconds = {}

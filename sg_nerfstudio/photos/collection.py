@@ -34,18 +34,22 @@ class PreparedPhoto:
     size: tuple[int, int]
 
 
-def list_photos(folder: Path, at_least: int = 3) -> list[Path]:
-    """The JPEG / PNG files directly inside `folder`, sorted by name; at least `at_least` of them (structure from motion
-    needs 3 overlapping photos), else one sentence that names the user's folder (not a staging copy of it)."""
+MIN_PHOTOS = 3
+"""Fewest photos a folder may hold: structure from motion needs 3 overlapping photos for a model."""
+
+
+def list_photos(folder: Path) -> list[Path]:
+    """The JPEG / PNG files directly inside `folder`, sorted by name; at least MIN_PHOTOS of them, else one sentence
+    that names the user's folder (not a staging copy of it)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise PhotoFolderError(f"Photo folder {folder} does not exist; expected a directory of JPEG or PNG photos.")
     photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
     if not photos:
-        raise PhotoFolderError(f"Photo folder {folder} holds no JPEG or PNG photo; expected at least {at_least}.")
-    if len(photos) < at_least:
+        raise PhotoFolderError(f"Photo folder {folder} holds no JPEG or PNG photo; expected at least {MIN_PHOTOS}.")
+    if len(photos) < MIN_PHOTOS:
         raise PhotoFolderError(
-            f"Photo folder {folder} holds {len(photos)} JPEG or PNG photo(s); expected at least {at_least} "
+            f"Photo folder {folder} holds {len(photos)} JPEG or PNG photo(s); expected at least {MIN_PHOTOS} "
             "(structure from motion needs 3 overlapping photos)."
         )
     return photos

@@ -483,13 +483,21 @@ def test_verdict_rule_follows_its_evidence():
     assert decide(Evidence(**sound | {"sharpness": shallow})).label == "uncertain"
     descending = decide(Evidence(**sound | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE}))
     assert descending.label == "uncertain" and "not converged" in descending.reasons[0]
-    held = {"sharpness": shallow, "keypoint_photos": verdict.ANCHORED_PHOTOS, "keypoint_error_cells": 0.5 * verdict.ANCHORS_HOLD_CELLS}
+    held = {"sharpness": shallow, "keypoint_photos": 2, "keypoint_error_cells": 0.5 * verdict.ANCHORS_HOLD_CELLS,
+            "keypoint_scale_motion_px": 2.0, "keypoint_error_px": 0.5}
     anchored = decide(Evidence(**sound | held))
     assert anchored.label == "registered" and "anchors of 2 photos hold" in anchored.reasons[1]
-    assert decide(Evidence(**sound | held | {"keypoint_photos": verdict.ANCHORED_PHOTOS - 1})).label == "uncertain"
+    # anchors that a 2% scale change barely moves (one photo's, or photos from one spot) do not fix the scale
+    assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.01})).label == "uncertain"
+    assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.05, "keypoint_error_px": 0.0})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"sharpness": 0.5 * verdict.FAILED_SHARPNESS})).label == "failed"
+    scale_seen = {"scale_rise": 2 * verdict.REGISTERED_SHARPNESS, "scale_probe": 0.04}
+    assert decide(Evidence(**sound | scale_seen)).label == "registered"
+    assert decide(Evidence(**sound | scale_seen | {"scale_rise": 0.5 * verdict.REGISTERED_SHARPNESS})).label == "registered"
+    flat_scale = decide(Evidence(**sound | scale_seen | {"scale_rise": 0.5 * verdict.FAILED_SHARPNESS}))
+    assert flat_scale.label == "uncertain" and flat_scale.reasons[0].startswith("scale not fixed")
 
 
 def test_depth_ratios_follow_the_scale_of_points_on_a_known_surface():
@@ -1074,34 +1082,45 @@ class _CentreLosses:
     `truth` puts it (what a dense objective that sees the scale would prefer)."""
 
     def __init__(self, meta, truth: Sim3):
+        from types import SimpleNamespace
+
         from sg_nerfstudio.geometry.alignment import camera_centres
 
         self.photos, self.centres = meta.photos, camera_centres(np.stack(meta.poses))
         self.target = truth.apply(self.centres)
+        self.objective = SimpleNamespace(teacher=SimpleNamespace(grid_size=32))
 
     def __call__(self, transform, indices):
         moved = transform.numpy().apply(self.centres)
         return [torch.tensor(float(np.sum((moved[i] - self.target[i]) ** 2))) for i in indices], torch.ones(len(indices))
 
 
-def test_the_scale_one_anchored_photo_leaves_free_is_found_about_its_camera(meta, ground_truth):
-    """One photo's anchors fix its camera but not the Sim(3)'s scale about it: the search scales about that camera
-    (which stays where it was) to the factor the other photos prefer; with anchors from two photos nothing changes."""
+def test_the_scale_one_anchored_photo_leaves_free_is_found_about_its_camera(reference, meta, ground_truth):
+    """One photo's anchors fix its camera but not the Sim(3)'s scale about it: a 2% scale change moves its keypoints
+    by nothing, the search scales about that camera (which stays where it was) to the factor the other photos prefer;
+    the anchors of two photos apart move by pixels, fix the scale, and nothing changes."""
     from sg_nerfstudio.geometry.alignment import camera_centres
-    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm, anchors_fix_scale
 
     first = meta.photos[0]
     centre = ground_truth.apply(camera_centres(first.cam_from_world[None])[0])
     start = Sim3.from_parts(1.35, np.eye(3), np.zeros(3)).about(centre) @ ground_truth
-    anchors = lambda names: Anchoring(meta, [PhotoKeypoints(n, np.zeros((5, 2)), np.zeros((5, 3))) for n in names], Sim3.identity(), 1.0)
+    exact = projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=1)
+    world = reference.world_to_dataparser
+    one, two = exact[:1], [k for k in exact if k.name in {first.name, meta.photos[-1].name}]
+    motion, error = KeypointTerm(meta, one, world, 32, 1.0).scale_motion_px(world @ ground_truth)
+    assert motion < 1e-6 and not anchors_fix_scale(motion, error)
+    motion, error = KeypointTerm(meta, two, world, 32, 1.0).scale_motion_px(world @ ground_truth)
+    assert motion > 0.1 and error < 1e-3 and anchors_fix_scale(motion, error)
+
+    anchors = lambda keypoints: Anchoring(meta, keypoints, Sim3.identity(), 1.0)  # the stand-in objective works in the world frame
     settings = RegistrationSettings(robust="none")
-    found, record = optimize.scale_about_the_one_anchored_photo(_CentreLosses(meta, ground_truth), anchors([first.name]), meta, start, settings)
-    assert record["photo"] == first.name and abs(record["factor"] - 1 / 1.35) < 0.02
+    found, record = optimize.scale_the_anchors_leave_free(_CentreLosses(meta, ground_truth), anchors(one), meta, start, settings)
+    assert record["photos"] == [first.name] and abs(record["factor"] - 1 / 1.35) < 0.02
     assert np.allclose(found.apply(camera_centres(first.cam_from_world[None])), centre[None], atol=1e-9)  # the anchored camera stays
     assert pose_errors(meta.poses, found, ground_truth).translation < 0.1 * pose_errors(meta.poses, start, ground_truth).translation
-    unchanged, none = optimize.scale_about_the_one_anchored_photo(_CentreLosses(meta, ground_truth), anchors([p.name for p in meta.photos[:2]]), meta, start, settings)
-    assert none is None and np.allclose(unchanged.matrix, start.matrix)
+    unchanged, none = optimize.scale_the_anchors_leave_free(_CentreLosses(meta, ground_truth), anchors(two), meta, ground_truth, settings)
+    assert none is None and np.allclose(unchanged.matrix, ground_truth.matrix)
 
 
 def test_a_registration_with_one_anchored_photo_searches_the_scale_it_leaves_free(reference, meta, ground_truth):
@@ -1117,6 +1136,7 @@ def test_a_registration_with_one_anchored_photo_searches_the_scale_it_leaves_fre
     settings = RegistrationSettings(**{**FAST, "steps": 10}, objective="teacher-on-render", keypoint_weight=3.0,
                                     keypoint_prealign_steps=200, prealigned_steps=0)
     result = register(reference, meta, start, settings, keypoints=anchors)
-    assert result.scale_search is not None and result.scale_search["photo"] == photo.name
+    assert result.scale_search is not None and result.scale_search["photos"] == [photo.name]
+    assert result.verdict.evidence.scale_rise is not None and result.verdict.evidence.scale_probe > 0
     before, after = (pose_errors(meta.poses, t, ground_truth).translation for t in (start, result.transform))
     assert after < 0.3 * before, (before, after, result.scale_search)

@@ -19,12 +19,12 @@ import torch
 from torch import Tensor
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.geometry.alignment import align_cameras, camera_centres, camera_residuals
+from sg_nerfstudio.geometry.alignment import align_cameras, camera_residuals
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
-from sg_nerfstudio.registration.keypoints import Anchoring, CameraFit, KeypointTerm
+from sg_nerfstudio.registration.keypoints import SCALE_RESOLUTION, Anchoring, CameraFit, KeypointTerm, anchors_fix_scale
 from sg_nerfstudio.features import teacher_input_size
 from sg_nerfstudio.registration.objectives import (
     Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos, refine_settings, with_camera_changes,
@@ -77,8 +77,9 @@ class RegistrationResult:
     photo the registration moved, where its last stages rendered it (the others sit at `transform` applied to their own
     pose)."""
     scale_search: Optional[dict] = None
-    """When the keypoint anchors came from one photo only (`scale_about_the_one_anchored_photo`): that photo, the scale
-    factor the dense objective chose about its camera and the objective there; None otherwise."""
+    """When the keypoint anchors left the scale free (`scale_the_anchors_leave_free`: one photo's, or those of photos
+    taken from nearly one spot): the anchored photos, how far a 2% scale change moved their keypoints and their median
+    error (pixels), the factor chosen about their mean camera centre and the objective there; None otherwise."""
 
 
 class BatchSchedule:
@@ -218,7 +219,7 @@ def register(
     main_steps, main_lr = main_schedule(settings, prealigned)
     main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), main_steps, main_lr, settings.lr_final)
     if prealigned:
-        current, scale_search = scale_about_the_one_anchored_photo(main.losses, anchor, meta, current, settings)
+        current, scale_search = scale_the_anchors_leave_free(main.losses, anchor, meta, current, settings)
     initial_losses, coverage = evaluate_start(main.losses, initial_ns @ camera_shift.inverse(), meta.name)  # the given cameras at the start
 
     history = History([p.name for p in photos])
@@ -234,10 +235,14 @@ def register(
 
     final_losses, final_coverage, trimmed, depth = final_evaluation(main.losses, current, settings)
     probing = time.perf_counter()
-    evidence = gather_evidence(main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth)
+    evidence = gather_evidence(
+        main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth,
+        scale_search["photos"] if scale_search else None,
+    )
     final_anchors = anchor.term(main.losses.objective.teacher.grid_size, 1.0)
     if final_anchors is not None:
         evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos
+        evidence.keypoint_scale_motion_px, evidence.keypoint_error_px = final_anchors.scale_motion_px(current)
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
@@ -441,10 +446,12 @@ def update_centre(meta: MetaImage, transform: Sim3, settings: RegistrationSettin
     return meta.look_at_under(transform) if settings.update_centre == "look-at" else meta.centroid_under(transform)
 
 
-def objective_at(losses: PhotoLosses, meta_to_dataparser: Sim3) -> Array:
-    """[P] per-photo losses of every photo under a numpy Sim3 (meta -> dataparser), without gradients."""
+def objective_at(losses: PhotoLosses, meta_to_dataparser: Sim3, indices: Optional[list[int]] = None) -> Array:
+    """[P] per-photo losses of every photo (or [len(indices)] of those photos) under a numpy Sim3 (meta -> dataparser),
+    without gradients."""
     with torch.no_grad():
-        return torch.stack(losses(meta_to_dataparser.to_torch(), list(range(len(losses.photos))))[0]).double().numpy()
+        indices = list(range(len(losses.photos))) if indices is None else indices
+        return torch.stack(losses(meta_to_dataparser.to_torch(), indices)[0]).double().numpy()
 
 
 def best_hypothesis(
@@ -489,42 +496,54 @@ def objective_with_anchors(losses: PhotoLosses, start_ns: Sim3, settings: Regist
     return lambda transform: dense(transform) + anchor.cost(term, transform)
 
 
-SCALE_SEARCH = (2.0, 17, 0.08, 9)
-"""The 1-D scale search of `scale_about_the_one_anchored_photo`: factors from 1/2 to 2 (17, log-spaced: 9% apart), then 9
-around the best, 0.08 of a log unit on either side (2% apart)."""
+SCALE_SEARCH = (2.0, 17, 4 * SCALE_RESOLUTION, 9)
+"""The 1-D scale search of `scale_the_anchors_leave_free`: factors from 1/2 to 2 (17, log-spaced: 9% apart), then 9
+around the best, 0.08 of a log unit on either side (SCALE_RESOLUTION, 2%, apart)."""
 
 
-def scale_about_the_one_anchored_photo(
+def scale_the_anchors_leave_free(
     losses: PhotoLosses, anchor: Anchoring, meta: MetaImage, transform: Sim3, settings: RegistrationSettings,
 ) -> tuple[Sim3, Optional[dict]]:
-    """When the keypoint anchors come from one photo of several, the Sim(3) (meta -> dataparser) scaled by the factor
-    the dense objective prefers about that photo's camera centre; with anchors from two photos or more, `transform`.
+    """When the keypoint anchors do not fix the Sim(3)'s scale (`keypoints.anchors_fix_scale`: the anchors of one photo,
+    or of photos taken from nearly one spot) and some photos have none, the Sim(3) (meta -> dataparser) scaled about
+    the anchored photos' mean camera centre by the factor the main stage's objective prefers; otherwise `transform`.
 
     Scaling the world about a camera's centre leaves that camera's image unchanged, so one photo's anchors fix 6 of the
     Sim(3)'s 7 degrees of freedom and leave the scale where the start put it (measured on 19 real 3-5-photo meta-images
     with the anchors of one photo kept: ΔT grew with the start's scale error, median 0.033 / 0.096 / 0.186 scene units
-    from 5% / 15% / 30% scale errors, while ΔR stayed at 0.1-0.6°). The other photos do see the scale: their cameras
-    move along the rays from the anchored one. The search scores factors (SCALE_SEARCH) by the robust objective of
-    every photo (the anchored photo's loss does not change) and returns the best, with a record of the search."""
-    anchored = {keypoints.name for keypoints in anchor.keypoints if len(keypoints.points2D)} if anchor else set()
-    if len(anchored) != 1 or len(meta.photos) < 2:
+    from 5% / 15% / 30% scale errors, while ΔR stayed at 0.1-0.6°); so do the anchors of a photo and its zoomed twin
+    taken from the same spot. The other photos do see the scale: their cameras move along the rays from the anchored
+    ones. The search scores factors (SCALE_SEARCH) by the robust objective of those photos plus the keypoint term,
+    weighted as a stage weighs it (about one photo's centre that term does not change). The anchored photos' own losses
+    do not change either, and counted with the others they would fill the trimmed mean's kept half (their renders fit
+    best) and hide the scale from it: the anchors of a photo and its zoomed twin in a 4-photo meta-image left the
+    search flat. Returns the best, with a record of the search."""
+    term = anchor.term(losses.objective.teacher.grid_size, 1.0) if anchor else None
+    if not term or term.photos >= len(meta.photos):
         return transform, None
-    photo = next(p for p in meta.photos if p.name in anchored)
-    centre = transform.apply(camera_centres(photo.cam_from_world[None])[0])
+    motion, error = term.scale_motion_px(transform)
+    if anchors_fix_scale(motion, error):
+        return transform, None
+    centre = transform.apply(term.centres.mean(0).numpy())
+    unanchored = [index for index, photo in enumerate(losses.photos) if photo.name not in set(term.names)]
     rule = TrimmingRule.of(settings)
+    dense = lambda candidate: rule.trimmed_mean(objective_at(losses, candidate, unanchored))
+    weighted = anchor.term(losses.objective.teacher.grid_size, dense(transform))
+    score = lambda candidate: dense(candidate) + anchor.cost(weighted, candidate)
 
     def scaled(log_factor: float) -> Sim3:
         return Sim3.from_parts(float(np.exp(log_factor)), np.eye(3), np.zeros(3)).about(centre) @ transform
 
     def best(log_factors: Array) -> tuple[float, float]:
-        scores = [rule.trimmed_mean(objective_at(losses, scaled(value))) for value in log_factors]
-        index = int(np.argmin(scores))
+        scores = [score(scaled(value)) for value in log_factors]
+        index = min(range(len(scores)), key=lambda i: (scores[i], abs(log_factors[i])))  # ties: the smallest change
         return float(log_factors[index]), float(scores[index])
 
     widest, coarse, step, fine = SCALE_SEARCH
     chosen, _ = best(np.linspace(-np.log(widest), np.log(widest), coarse))
-    chosen, score = best(chosen + np.linspace(-step, step, fine))
-    return scaled(chosen), {"photo": photo.name, "factor": round(float(np.exp(chosen)), 4), "objective": score}
+    chosen, value = best(chosen + np.linspace(-step, step, fine))
+    record = {"photos": term.names, "anchor_motion_px": round(motion, 3), "anchor_error_px": round(error, 3)}
+    return scaled(chosen), record | {"factor": round(float(np.exp(chosen)), 4), "objective": value}
 
 
 HYPOTHESIS_AGREEMENT_DEG = 2.0

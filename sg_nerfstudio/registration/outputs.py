@@ -3,7 +3,8 @@
     transform.json   Sim(3) meta -> reference world (matrix, scale, quaternion, translation), the initial
                      transform, the verdict (registered | uncertain | failed) with its reasons and evidence,
                      final trimmed loss, steps, wall time, settings, the optimised hypotheses (if any), the
-                     scale search when one photo alone had keypoint anchors (`scale_search`, else null), per
+                     scale search when the keypoint anchors left the scale free (one photo's, or those of photos
+                     from one spot: `scale_search`, else null), per
                      photo its losses, the focal_scale it was rendered with and (with `refine_photo_poses`) its
                      pose_correction: how far its camera was moved from where the Sim(3) puts it (null: not moved)
                      and (with `refine_distortion`) its camera's radial_k1 (null: as the SfM found it)

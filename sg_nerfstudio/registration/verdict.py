@@ -15,16 +15,26 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   at least `PHOTO_RISE`) and that the model covers (at least `PHOTO_COVERAGE` of the render). Occluded or
   wrong photos do not agree; a wrong result has few photos that agree.
 - `objective_drop`: 1 - T_final / T_initial (reported, not used: a good start has little to gain).
-- `keypoint_error_cells`, `keypoint_photos` (with keypoint anchors only, registration/keypoints.py): the median
-  reprojection error of the anchors at the result, in teacher cells, and how many photos have anchors. The anchors
-  are RANSAC-verified matches of the photos against the reference's own images: when those of at least
-  `ANCHORED_PHOTOS` photos reproject within `ANCHORS_HOLD_CELLS` at the result, they fix the pose where the dense
+- `keypoint_error_cells`, `keypoint_photos`, `keypoint_scale_motion_px`, `keypoint_error_px` (with keypoint anchors
+  only, registration/keypoints.py): the median reprojection error of the anchors at the result, in teacher cells, how
+  many photos have anchors, and how far a 2% scale change moves the anchors against their median error, in pixels
+  (`KeypointTerm.scale_motion_px`). The anchors are RANSAC-verified matches of the photos against the reference's own
+  images: when they reproject within `ANCHORS_HOLD_CELLS` at the result and fix the scale (the motion exceeds the
+  error: not one photo's anchors, nor those of photos taken from one spot), they fix the pose where the dense
   objective is shallow (a reference of few views or points), so a shallow minimum alone does not make it uncertain.
 - `depth_log_ratio`, `depth_agreeing`, `depth_points` (registration/depth_agreement.py): the median log ratio of
   the reference's rendered depth to the meta-image's own sparse points' depth at the result, the share of
   points within 10%, and how many the model covers; reported, not used: a wrong scale or depth shows there
   (0.1 for 10%), but most inaccurate results of the benchmark (3 of wide-cpu's 5 from 30°) were rotations that
   keep the depths (docs/measurements.md "Depth agreement").
+- `scale_rise`, `scale_probe` (only when the keypoint anchors left the scale free and the registration searched it,
+  `optimize.scale_the_anchors_leave_free`): the 12 probes above keep the anchored photos' images where the anchors put
+  them and so cannot show a wrong scale; two more scale the Sim(3) by 1 ± `scale_probe` about the anchored photos' mean
+  camera centre, sized to move the other photos' cameras by the translation probe's distance (median), and
+  `scale_rise` is the smaller relative rise of those other photos' robust objective there. Below `FAILED_SHARPNESS`
+  (flat, as the 12 probes' median must not be) the scale rests on nothing the descriptor resolves, or a probe descends:
+  uncertain. The anchors hold the other six degrees of freedom, so a shallow rise above it is accepted as a shallow
+  minimum is with anchors that hold (real twin pairs: 2.9-3.5% at ±5.5% on fountain3 0005-0008, accurate).
 - `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
   for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
 
@@ -44,9 +54,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from sg_nerfstudio.geometry.alignment import camera_centres
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.depth_agreement import DepthAgreement
+from sg_nerfstudio.registration.keypoints import anchors_fix_scale
 from sg_nerfstudio.registration.robust import TrimmingRule
 
 Array = np.ndarray
@@ -60,7 +72,6 @@ FAILED_AGREEING = 1 / 3
 FAILED_SHARPNESS = 0.015
 REGISTERED_AGREEING = 0.5
 REGISTERED_SHARPNESS = 0.05
-ANCHORED_PHOTOS = 2  # one photo's anchors fix its own pose, not the meta-image's scale
 ANCHORS_HOLD_CELLS = 0.25  # chosen, not calibrated: anchored results sit at 0.02-0.17 cells, a pose 3° off at several
 
 
@@ -81,9 +92,13 @@ class Evidence:
     hypothesis_margin: Optional[float] = None
     keypoint_error_cells: Optional[float] = None
     keypoint_photos: Optional[int] = None
+    keypoint_scale_motion_px: Optional[float] = None
+    keypoint_error_px: Optional[float] = None
     depth_log_ratio: Optional[float] = None
     depth_agreeing: Optional[float] = None
     depth_points: int = 0
+    scale_rise: Optional[float] = None
+    scale_probe: Optional[float] = None
 
     @property
     def agreeing_fraction(self) -> float:
@@ -91,10 +106,11 @@ class Evidence:
 
     @property
     def anchors_hold(self) -> bool:
-        """Whether the keypoint anchors of at least ANCHORED_PHOTOS photos reproject within ANCHORS_HOLD_CELLS."""
-        if self.keypoint_photos is None or self.keypoint_error_cells is None:
+        """Whether the keypoint anchors reproject within ANCHORS_HOLD_CELLS and fix the scale (a 2% change moves them
+        by more than their median error: `keypoints.anchors_fix_scale`)."""
+        if None in (self.keypoint_error_cells, self.keypoint_scale_motion_px, self.keypoint_error_px):
             return False
-        return self.keypoint_photos >= ANCHORED_PHOTOS and self.keypoint_error_cells <= ANCHORS_HOLD_CELLS
+        return self.keypoint_error_cells <= ANCHORS_HOLD_CELLS and anchors_fix_scale(self.keypoint_scale_motion_px, self.keypoint_error_px)
 
 
 @dataclass
@@ -133,7 +149,7 @@ def probes(rotation: float, translation: float) -> list[Tensor]:
 
 def gather_evidence(
     losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, coverage: Array, initial_losses: Array, rule: TrimmingRule,
-    depth: Optional[DepthAgreement] = None,
+    depth: Optional[DepthAgreement] = None, scale_free_about: Optional[list[str]] = None,
 ) -> Evidence:
     """Render the probes around `final_ns` (meta -> dataparser) and measure the evidence.
 
@@ -143,6 +159,8 @@ def gather_evidence(
         coverage: [P] fraction of each photo's render the model covers at the result.
         rule: the registration's robust rule (the objective T is its trimmed mean).
         depth: the depth agreement at the result (`depth_agreement.summarise`), reported as it is; None: not measured.
+        scale_free_about: names of the anchored photos when the anchors left the scale free (the scale probes about
+            their mean camera centre); None: no scale probes.
     """
     indices = list(range(len(losses.photos)))
     rotation, translation = probe_sizes(meta, losses.photos, losses.objective.teacher.grid_size, final_ns)
@@ -157,6 +175,7 @@ def gather_evidence(
     photo_rise = np.median(probe_losses / np.maximum(final_losses, 1e-12)[None] - 1.0, axis=0)
     agreeing = (photo_rise >= PHOTO_RISE) & (coverage >= PHOTO_COVERAGE)
     initial = rule.trimmed_mean(initial_losses)
+    scale_rise, scale_probe = scale_probes(losses, meta, final_ns, final_losses, rule, translation, scale_free_about)
     return Evidence(
         sharpness=float(np.median(rises)), flattest_rise=float(rises.min()), agreeing_photos=int(agreeing.sum()),
         photos=len(indices), median_coverage=float(np.median(coverage)), objective_drop=1.0 - final / max(initial, 1e-12),
@@ -164,7 +183,31 @@ def gather_evidence(
         per_photo_rise=[float(v) for v in photo_rise], per_photo_coverage=[float(v) for v in coverage],
         depth_log_ratio=depth.log_ratio if depth and depth.points else None,
         depth_agreeing=depth.agreeing if depth and depth.points else None, depth_points=depth.points if depth else 0,
+        scale_rise=scale_rise, scale_probe=scale_probe,
     )
+
+
+def scale_probes(
+    losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, rule: TrimmingRule, translation: float, anchored: Optional[list[str]],
+) -> tuple[Optional[float], Optional[float]]:
+    """(scale_rise, scale_probe) of the Evidence (see the module docstring), or (None, None) without `anchored` names or
+    without photos outside them. `translation`: the translation probe's size (dataparser units)."""
+    names = [photo.name for photo in losses.photos]
+    others = [index for index, name in enumerate(names) if name not in set(anchored or [])]
+    if not anchored or not others or len(others) == len(names):
+        return None, None
+    by_name = {photo.name: photo for photo in meta.photos}
+    centres = final_ns.apply(camera_centres(np.stack([by_name[name].cam_from_world for name in names])))
+    centre = centres[[index for index in range(len(names)) if index not in others]].mean(0)
+    step = translation / max(float(np.median(np.linalg.norm(centres[others] - centre, axis=1))), 1e-12)
+    base = max(rule.trimmed_mean(final_losses[others]), 1e-12)
+    rises = []
+    for factor in (1.0 + step, 1.0 / (1.0 + step)):
+        probe = Sim3.from_parts(factor, np.eye(3), np.zeros(3)).about(centre) @ final_ns
+        with torch.no_grad():
+            values = torch.stack(losses(probe.to_torch(), others)[0]).double().numpy()
+        rises.append(rule.trimmed_mean(values) / base - 1.0)
+    return float(min(rises)), float(step)
 
 
 def decide(evidence: Evidence) -> Verdict:
@@ -182,6 +225,9 @@ def decide(evidence: Evidence) -> Verdict:
         reasons.append(f"shallow minimum: {sharp}")
     if evidence.flattest_rise < DESCENT_TOLERANCE:
         reasons.append(f"not converged: a probe is {100 * -evidence.flattest_rise:.1f}% lower")
+    if evidence.scale_rise is not None and evidence.scale_rise < FAILED_SHARPNESS:
+        change = f"{100 * evidence.scale_rise:+.1f}% at {100 * evidence.scale_probe:.0f}% more or less scale"
+        reasons.append(f"scale not fixed: the anchors leave it free, the other photos' objective changes {change}")
     if reasons:
         return Verdict("uncertain", reasons, evidence)
     if evidence.sharpness < REGISTERED_SHARPNESS:

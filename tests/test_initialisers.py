@@ -254,6 +254,26 @@ def test_colmap_start_from_two_registered_photos_and_from_one(initialiser, scene
     assert generalized.succeeded and generalized.method == "generalized" and np.allclose(generalized.transform.matrix, one.transform.matrix)
 
 
+def test_registered_photos_from_one_spot_start_from_the_one_with_the_most_inliers(initialiser, scene, cache_dir, tmp_path):
+    """Two photos register, but the meta-image's SfM puts them at one spot (the second at the first's pose, as for a
+    photo and a zoomed copy of it): their centres give no scale and no Sim(3) fits both. The start is the one-photo
+    start from the photo with the most inliers, and the note says why; with `one_photo_start` off, the failure."""
+    meta_dir = blank_meta_image(scene, tmp_path, keep=2)
+    (meta_dir / "sparse").unlink()
+    model = pycolmap.Reconstruction(str(scene / "meta" / "front" / "sparse" / "0"))
+    first, second = sorted(model.images.values(), key=lambda image: image.name)[:2]
+    model.frames[second.frame_id].rig_from_world = model.frames[first.frame_id].rig_from_world
+    (meta_dir / "sparse" / "0").mkdir(parents=True)
+    model.write(str(meta_dir / "sparse" / "0"))
+    meta = load_meta_image(meta_dir)
+    result = initialiser(meta, "colmap")
+    assert result.succeeded, result.failure
+    chosen = max((p for p in result.photos if p.registered), key=lambda p: p.num_inliers).name
+    assert result.agreeing_photos == [chosen] and "give no Sim(3)" in result.note and f"starting from {chosen} alone" in result.note
+    classical = Initialiser(initialiser.source, InitialiserSettings(cache_dir=cache_dir, one_photo_start=False))(meta, "colmap")
+    assert not classical.succeeded and "the 2 registered photos give no Sim(3)" in classical.failure
+
+
 def test_similarity_from_one_photo_is_exact_with_the_true_depths():
     """The registered photo's pose in both frames fixes rotation and centre; the ratio of its depths, the scale."""
     from sg_nerfstudio.initialisers.estimate import similarity_from_one_photo

@@ -5,8 +5,9 @@
                  with the reference fixed), then the Sim(3) comes from the registered photos' camera
                  centres with RANSAC (COLMAP's model_aligner idea; the paper uses max error 3 in the
                  metres of its GPS-scaled references); below 5 registered photos or with centres near
-                 one line, from their poses instead (estimate.similarity_from_poses). Fewer than 3
-                 agreeing photos is a failure.
+                 one line, from their poses instead (estimate.similarity_from_poses). With fewer than 2
+                 registered photos that agree (one photo, or photos taken from one spot), the start is
+                 one photo's pose and the scale of its depths (`one_photo_start`), else a failure.
     generalized  the photos' 2D-3D correspondences are pooled and the meta-image is solved as one
                  generalized camera (estimate.generalized_similarity): our analogue of gDLS+++.
 
@@ -80,8 +81,10 @@ class InitialiserSettings:
     distance of the reference cameras to their centroid (the reference's scale is arbitrary; the paper's 3
     was metres of GPS-scaled references)."""
     one_photo_start: bool = True
-    """When exactly one photo registers (colmap), or the generalized pose finds no rig of two photos and exactly one
-    photo registers on its own (generalized): start from that photo's pose with the scale of its depths
+    """When exactly one photo registers (colmap), or several do but give no Sim(3) that two of them fit (colmap: photos
+    taken from one spot, whose centres give no scale; the one with the most inliers), or the generalized pose finds no
+    rig of two photos and exactly one photo registers on its own (generalized): start from that photo's pose with the
+    scale of its depths
     (`estimate.similarity_from_one_photo`; the registration then searches the scale with the dense objective) rather
     than failing. False: such a meta-image fails to initialise, as a classical pipeline would."""
     min_registered_photos: int = 2
@@ -343,14 +346,22 @@ class Initialiser:
             )
         if found is None or found[1].sum() < needed:
             agreeing = 0 if found is None else int(found[1].sum())
-            return self._failure("colmap", meta, poses, f"the {len(registered)} registered photos give no Sim(3) that at least {needed} of them fit within {max_error:.3g} reference units (best: {agreeing})")
+            reason = f"the {len(registered)} registered photos give no Sim(3) that at least {needed} of them fit within {max_error:.3g} reference units (best: {agreeing})"
+            if self.settings.one_photo_start:  # e.g. photos taken from one spot: their centres give no scale
+                return self._one_photo(meta, poses, *max(registered, key=lambda pair: pair[1].num_inliers), because=reason)
+            return self._failure("colmap", meta, poses, reason)
         transform, inliers = found
         agreeing = [p.name for (_, p), keep in zip(registered, inliers) if keep]
         return InitResult("colmap", meta.name, Sim3(transform), None, poses, agreeing, 0.0)
 
-    def _one_photo(self, meta: MetaImage, poses: list[PhotoPose], observations: Observations, pose: PhotoPose, method: str = "colmap") -> InitResult:
-        """The start of `method` when exactly one photo registered (`similarity_from_one_photo`): its pose, and the scale
-        from the median depths of what it sees in the meta-image and in the reference (`one_photo_start`)."""
+    def _one_photo(
+        self, meta: MetaImage, poses: list[PhotoPose], observations: Observations, pose: PhotoPose, method: str = "colmap",
+        because: Optional[str] = None,
+    ) -> InitResult:
+        """The start of `method` from one registered photo (`similarity_from_one_photo`): its pose, and the scale from the
+        median depths of what it sees in the meta-image and in the reference (`one_photo_start`). Used when exactly one
+        photo registered, or (colmap, `because`) when the registered photos gave no Sim(3): the one with the most inliers
+        (photos taken from one spot, whose centres give no scale, or that disagree)."""
         photo = next(p for p in meta.photos if p.name == observations.name)
         meta_depths = photo.point_depths[photo.point_depths > 0]
         inliers = observations.points3D[pose.inlier_mask]
@@ -362,8 +373,9 @@ class Initialiser:
         )
         if transform is None:
             return self._failure(method, meta, poses, f"only {photo.name} of {len(poses)} photos registered to the reference, and its depths give no scale")
+        note = f"one photo registered ({photo.name})" if because is None else f"{because}; starting from {photo.name} alone"
         return InitResult(method, meta.name, Sim3(transform), None, poses, [photo.name], 0.0,
-                          note=f"one photo registered ({photo.name}): the scale is a first guess from its depths")
+                          note=f"{note}: the scale is a first guess from its depths")
 
     def _generalized(self, meta: MetaImage, observations: list[Observations]) -> InitResult:
         advance = self.progress(f"Generalized pose of {meta.name}", 1)

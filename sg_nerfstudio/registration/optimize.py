@@ -528,8 +528,8 @@ def scale_the_anchors_leave_free(
     unanchored = [index for index, photo in enumerate(losses.photos) if photo.name not in set(term.names)]
     rule = TrimmingRule.of(settings)
     dense = lambda candidate: rule.trimmed_mean(objective_at(losses, candidate, unanchored))
-    weighted = anchor.term(losses.objective.teacher.grid_size, dense(transform))
-    score = lambda candidate: dense(candidate) + anchor.cost(weighted, candidate)
+    weight = dense(transform)  # the term's weight, as a stage starting here would set it (its cost is linear in it)
+    score = lambda candidate: dense(candidate) + weight * anchor.cost(term, candidate)
 
     def scaled(log_factor: float) -> Sim3:
         return Sim3.from_parts(float(np.exp(log_factor)), np.eye(3), np.zeros(3)).about(centre) @ transform

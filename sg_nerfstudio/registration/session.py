@@ -255,6 +255,13 @@ def register_one(
     if result.pose_corrections:
         turns = sorted(c["rotation_deg"] for c in result.pose_corrections.values())
         console.print(f"{meta.name}: cameras of {len(turns)} photos moved within the meta-image by {turns[0]:.2f}° to {turns[-1]:.2f}° (transform.json, aligned/).")
+    if result.scale_search:
+        search = result.scale_search
+        console.print(
+            f"{meta.name}: the anchors of {', '.join(search['photos'])} leave the scale free (a 2% change moves them "
+            f"{search['anchor_motion_px']:.2f} px, their error is {search['anchor_error_px']:.2f} px): scaled x{search['factor']:.3f} "
+            "about their cameras, as the other photos prefer (transform.json: scale_search).", soft_wrap=True,
+        )
     errors = None
     if gt is not None:
         errors = {"before": pose_errors(meta.poses, initial, gt), "after": pose_errors(meta.poses, result.transform, gt)}

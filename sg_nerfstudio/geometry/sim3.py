@@ -109,6 +109,11 @@ class Sim3:
         return cls.from_parts(1.0, np.eye(3), offset)
 
     @classmethod
+    def scaling_about(cls, factor: float, centre: Array) -> "Sim3":
+        """A scaling by `factor` that keeps `centre` [3] where it is."""
+        return cls.from_parts(float(factor), np.eye(3), np.zeros(3)).about(centre)
+
+    @classmethod
     def random(cls, rng: np.random.Generator, rotation_deg: float, translation: float, scale_fraction: float) -> "Sim3":
         """A Sim(3) with exactly these magnitudes in random directions: rotation by `rotation_deg` about a
         random axis, translation of length `translation`, scale 1 +- scale_fraction (random sign)."""

@@ -242,7 +242,7 @@ class KeypointTerm:
         1.8-7.0 px) against median errors of 0.34-0.96 px; a photo and a zoomed copy of it from the same spot, at most
         0.02 px."""
         centre = meta_to_dataparser.apply(self.centres.mean(0).numpy())
-        scaled = Sim3.from_parts(float(np.exp(log_factor)), np.eye(3), np.zeros(3)).about(centre) @ meta_to_dataparser
+        scaled = Sim3.scaling_about(np.exp(log_factor), centre) @ meta_to_dataparser
         with torch.no_grad():
             before, in_front = self.error_vectors(meta_to_dataparser.to_torch())
             after, still_in_front = self.error_vectors(scaled.to_torch())

@@ -532,7 +532,7 @@ def scale_the_anchors_leave_free(
     score = lambda candidate: dense(candidate) + weight * anchor.cost(term, candidate)
 
     def scaled(log_factor: float) -> Sim3:
-        return Sim3.from_parts(float(np.exp(log_factor)), np.eye(3), np.zeros(3)).about(centre) @ transform
+        return Sim3.scaling_about(np.exp(log_factor), centre) @ transform
 
     def best(log_factors: Array) -> tuple[float, float]:
         scores = [score(scaled(value)) for value in log_factors]

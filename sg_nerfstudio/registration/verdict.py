@@ -203,7 +203,7 @@ def scale_probes(
     base = max(rule.trimmed_mean(final_losses[others]), 1e-12)
     rises = []
     for factor in (1.0 + step, 1.0 / (1.0 + step)):
-        probe = Sim3.from_parts(factor, np.eye(3), np.zeros(3)).about(centre) @ final_ns
+        probe = Sim3.scaling_about(factor, centre) @ final_ns
         with torch.no_grad():
             values = torch.stack(losses(probe.to_torch(), others)[0]).double().numpy()
         rises.append(rule.trimmed_mean(values) / base - 1.0)

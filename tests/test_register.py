@@ -738,8 +738,9 @@ def with_wrong_focal_lengths(meta, factor: float):
 def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, ground_truth, tmp_path):
     """Keypoints seen through the true cameras, a meta-image whose SfM focal lengths are 5% long: the Sim(3) alone
     cannot absorb it (the pre-aligned cameras end off the truth), the joint fit of `refine_focal` finds scales
-    within 0.5% of 1/1.05 and puts the cameras back; a registration with it renders and records that scale (transform.json,
-    the aligned model's cameras)."""
+    within 1% of 1/1.05 (the rest is the SfM's own uncertainty, held at the keypoints' noise: 0.5 px on these 48-px
+    photos) and puts the cameras back; a registration with it renders and records that scale (transform.json, the
+    aligned model's cameras)."""
     from sg_nerfstudio.registration.keypoints import Anchoring
     from sg_nerfstudio.registration.outputs import write_outputs
 
@@ -750,7 +751,7 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     fit = anchoring.fit_cameras(prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=True, pose_prior_scale=None)
     fitted, scales = fit.transform, fit.focal_scales
     assert fit.poses == {} and sorted(scales) == sorted(photo.name for photo in meta.photos)
-    assert np.allclose(list(scales.values()), 1 / 1.05, atol=0.005)
+    assert np.allclose(list(scales.values()), 1 / 1.05, atol=0.01)
     before, after = (pose_errors(meta.poses, transform, ground_truth).translation for transform in (prealigned, fitted))
     assert after < before / 3
     far_off = Anchoring(with_wrong_focal_lengths(meta, 1.5), anchors, Sim3.identity(), 1.0)  # beyond MAX_FOCAL_CHANGE
@@ -773,8 +774,9 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
 
 def test_distortion_refinement_recovers_a_wrong_sfm_radial_coefficient(reference, meta, ground_truth, tmp_path):
     """Keypoints seen through the true cameras, a meta-image whose SfM put k1 0.1 too high on its SIMPLE_RADIAL cameras:
-    the joint fit of `refine_distortion` compares those keypoints in the distorted photo and finds k1 within 0.04 of
-    the truth on every camera (48-px photos: 0.1 of k1 moves a corner by about a pixel) and the Sim(3) no further from the truth; a
+    the joint fit of `refine_distortion` compares those keypoints in the distorted photo and moves every k1 most of the
+    way back, under 0.07 from the truth and 0.05 on average (48-px photos: 0.1 of k1 moves a corner by about a pixel,
+    and the keypoints weigh as 0.5 px of noise against the SfM's own uncertainty), and the Sim(3) no further from the truth; a
     registration with it (dataparser frame, where the same fit stops sooner on these tiny photos) moves every k1 closer
     to the truth and records it per photo (transform.json) and in the aligned model's cameras."""
     from sg_nerfstudio.geometry.meta_image import radial_k1_index
@@ -790,7 +792,8 @@ def test_distortion_refinement_recovers_a_wrong_sfm_radial_coefficient(reference
     fit = anchoring.fit_cameras(prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=False,
                                 pose_prior_scale=None, distortion=True)
     assert sorted(fit.radial_k1) == sorted(truth_k1)
-    assert all(abs(fit.radial_k1[c] - truth_k1[c]) < 0.04 for c in truth_k1), (fit.radial_k1, truth_k1)
+    errors = [abs(fit.radial_k1[c] - truth_k1[c]) for c in truth_k1]
+    assert max(errors) < 0.07 and np.mean(errors) < 0.05, (fit.radial_k1, truth_k1)  # measured: 0.004-0.063, mean 0.036
     before, after = (pose_errors(meta.poses, transform, ground_truth) for transform in (prealigned, fit.transform))
     assert after.rotation_deg <= before.rotation_deg + 1e-3 and after.translation <= before.translation + 1e-4
 
@@ -939,7 +942,6 @@ def test_camera_fit_ends_where_the_priors_last_digits_do_not_matter(reference, m
     from sg_nerfstudio.registration.keypoints import Anchoring
 
     from sg_nerfstudio.registration.keypoints import FIT_KERNEL_FRACTION, FreeCameras, fit_jointly, freedom
-    from sg_nerfstudio.geometry.meta_image import intrinsics_uncertainty
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.1, seed=7)
     wrong = with_one_photo_turned(meta, 1.0)
@@ -950,7 +952,7 @@ def test_camera_fit_ends_where_the_priors_last_digits_do_not_matter(reference, m
 
     # stationary: a Newton step on every fitted parameter has less than 1e-7 left to go
     term = anchoring.term(32, 1.0, FIT_KERNEL_FRACTION * 32)
-    focal, pose_sigma = freedom(intrinsics_uncertainty(wrong.reconstruction)[0], term.camera_ids), term.pose_sigma(anchoring.rotation_priors(10.0))
+    focal, pose_sigma = freedom(anchoring.intrinsics_priors(FIT_KERNEL_FRACTION)[0], term.camera_ids), term.pose_sigma(anchoring.rotation_priors(10.0))
     centre = torch.from_numpy(wrong.look_at_under(rigid))
     fitted, free = fit_jointly(term, rigid, centre.numpy(), 20, focal, pose_sigma)
     start = torch.cat([torch.zeros(7, dtype=torch.float64), free.log_focal, (free.pose_corrections / pose_sigma).reshape(-1)])

@@ -910,6 +910,50 @@ def test_levenberg_marquardt_reaches_the_robust_minimum_that_lbfgs_approaches():
     assert float(cost(solution.x)) < float(cost(truth)) and float(cost(solution.x)) <= float(cost(lbfgs_x.detach())) + 1e-12
 
 
+
+def at_resolution(meta, anchors, factor: int):
+    """The meta-image and its keypoint anchors as if every photo were `factor` times larger: cameras rescaled (focal
+    lengths and principal points), every observation of the SfM model and every keypoint scaled by `factor`."""
+    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+
+    reconstruction = pycolmap.Reconstruction(meta.reconstruction)
+    for camera in reconstruction.cameras.values():
+        camera.rescale(camera.width * factor, camera.height * factor)
+    for image in reconstruction.images.values():
+        for point in image.points2D:
+            point.xy = point.xy * factor
+    photos = [replace(photo, camera=copy.deepcopy(reconstruction.cameras[photo.camera.camera_id])) for photo in meta.photos]
+    scaled = [PhotoKeypoints(k.name, np.asarray(k.points2D) * factor, k.points3D) for k in anchors]
+    return replace(meta, photos=photos, reconstruction=reconstruction), scaled
+
+
+def test_the_camera_fit_does_not_depend_on_the_photos_resolution(reference, meta, ground_truth):
+    """The camera fit weighs keypoints in teacher cells (a fraction of the photo) and holds focal lengths, k1 and poses by
+    the SfM's own uncertainty at the keypoints' noise (`Anchoring.intrinsics_priors`, `rotation_priors`). The SfM's
+    covariance assumes 1 px of noise, so at twice the resolution it is twice as sure of everything; the keypoints' noise
+    in pixels doubles with it, and the fit of a meta-image with wrong focal lengths and k1 ends at the same Sim(3), focal
+    scales, k1 and poses whether its photos and keypoints are 48 or 96 px (2e-9 apart; with the focal and k1 priors held
+    at 1 px, as before 57db2fd, the focal scales were 0.0014 and k1 0.014 apart)."""
+    from sg_nerfstudio.geometry.meta_image import radial_k1_index
+    from sg_nerfstudio.registration.keypoints import Anchoring
+
+    anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.05, seed=4)
+    truth_k1 = {int(p.camera.camera_id): float(p.camera.params[radial_k1_index(p.camera)]) for p in meta.photos}
+    wrong = with_wrong_focal_lengths(meta, 1.05).with_radial_distortion({c: k1 + 0.05 for c, k1 in truth_k1.items()})
+    fits = []
+    for factor in (1, 2):
+        scaled, keypoints = at_resolution(wrong, anchors, factor)
+        anchoring = Anchoring(scaled, keypoints, Sim3.identity(), 1.0)
+        prealigned = anchoring.prealign(ground_truth, scaled.look_at_under(ground_truth), grid_size=32, steps=1000)
+        fits.append(anchoring.fit_cameras(prealigned, scaled.look_at_under(prealigned), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True))
+    small, large = fits
+    assert small.focal_scales and small.radial_k1 and small.poses, "the fit was dropped"
+    assert max(abs(small.focal_scales[n] - 1.0) for n in small.focal_scales) > 0.01  # it did move them
+    assert all(abs(small.focal_scales[n] - large.focal_scales[n]) < 1e-6 for n in small.focal_scales), (small.focal_scales, large.focal_scales)
+    assert all(abs(small.radial_k1[c] - large.radial_k1[c]) < 1e-6 for c in small.radial_k1), (small.radial_k1, large.radial_k1)
+    assert np.allclose(small.transform.matrix, large.transform.matrix, atol=1e-6, rtol=0)
+    assert all(np.allclose(small.poses[n], large.poses[n], atol=1e-6, rtol=0) for n in small.poses)
+
 def test_a_focal_change_widens_the_centre_shift_a_photo_may_take():
     """A photo whose SfM focal length was some percent wrong stood as many percent too near or far from a facade: the
     plausibility limit lets the camera fit move it by its depth times the focal change on top of MAX_POSE_CHANGE_DEG;

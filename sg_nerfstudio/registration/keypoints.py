@@ -370,8 +370,9 @@ class Anchoring:
         cannot be estimated keep theirs, and so do photos whose orientation uncertainty cannot be. Every photo of a refined
         camera, keypoints or not, renders with it (as the aligned model's camera); photos without keypoints keep their
         pose. With `distortion`, each camera of RADIAL_MODELS also fits its first radial coefficient k1 under the SfM's
-        own uncertainty of it, also at the keypoints' noise (the keypoints compared in the distorted photo, `KeypointTerm.distorted_errors`): a 3-photo model's k1 can
-        be off by a few hundredths, which moves its cameras along their axes as a wrong focal length does."""
+        own uncertainty of it, also at the keypoints' noise (the keypoints compared in the distorted photo,
+        `KeypointTerm.distorted_errors`): a 3-photo model's k1 can be off by a few hundredths, which moves its cameras
+        along their axes as a wrong focal length does."""
         kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS
         term = self.term(grid_size, 1.0, kernel)
         if not term or iterations <= 0:

@@ -120,10 +120,10 @@ class RegistrationSettings:
     refine_focal: bool = False
     """After the keypoint pre-alignment, fit one focal-length scale per COLMAP camera of the photos with keypoints
     jointly with the Sim(3), each held by the meta-image SfM's own uncertainty of that focal length at the keypoints'
-    noise (render-free; `Anchoring.fit_cameras`, `Anchoring.intrinsics_priors`); every later stage renders the photos of those cameras with it,
-    transform.json records it per photo and the aligned and merged models' cameras carry it. It moves focal lengths
-    the SfM determined poorly (3-photo meta-images) and leaves well-determined ones; off = the SfM intrinsics as they
-    are (the paper)."""
+    noise (render-free; `Anchoring.fit_cameras`, `Anchoring.intrinsics_priors`); every later stage renders the photos
+    of those cameras with it, transform.json records it per photo and the aligned and merged models' cameras carry it.
+    It moves focal lengths the SfM determined poorly (3-photo meta-images) and leaves well-determined ones; off = the
+    SfM intrinsics as they are (the paper)."""
     refine_photo_poses: bool = False
     """In the same joint fit as `refine_focal` (with or without it), move each photo with keypoints inside the meta-image
     by a small rotation and centre shift, each held by a prior: `photo_pose_prior_scale` times the meta-image SfM's own
@@ -136,9 +136,8 @@ class RegistrationSettings:
     refine_distortion: bool = False
     """In the same joint fit, the first radial distortion coefficient k1 of each COLMAP camera of the photos with keypoints
     (models SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV), held by the meta-image SfM's own uncertainty of it at the
-    keypoints' noise; the keypoints'
-    rays are undistorted again with the fitted focal length and k1, every later stage renders against the photos
-    undistorted with it, transform.json and the aligned model carry it. A 3-photo SfM can get k1 a few hundredths off
+    keypoints' noise; the keypoints' rays are undistorted again with the fitted focal length and k1, every later stage
+    renders against the photos undistorted with it, transform.json and the aligned model carry it. A 3-photo SfM can get k1 a few hundredths off
     (docs/measurements.md "Other splits and looks of the same real photos"); off = the SfM's distortion as it is (the paper)."""
     photo_pose_prior_scale: float = 1.0
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""

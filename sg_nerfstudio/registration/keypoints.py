@@ -216,18 +216,25 @@ class KeypointTerm:
         quadratic = [(prior * per_photo.sqrt()[:, None]).reshape(-1) for prior in priors]
         return RobustResiduals(error / self.kernel, weights, torch.cat(quadratic) if quadratic else error.new_zeros(0))
 
-    def pose_sigma(self, rotation_deg: dict[str, float]) -> Optional[Tensor]:
+    def pose_sigma(self, rotation_deg: dict[str, float], focal_sigma: Optional[dict[int, float]] = None) -> Optional[Tensor]:
         """[P', 6] prior standard deviations of the pose corrections (radians for the rotation, meta units for the centre
-        shift) from `rotation_deg` {photo name: degrees}: that angle for the rotation, and for the centre the shift that
-        moves the photographed scene as much, the photo's median point depth times the angle (photos without points:
-        the median over the others). 0 (the photo is not moved) for photos not named; None when no photo is moved."""
+        shift along the photo's own camera axes x, y, z) from `rotation_deg` {photo name: degrees}: that angle for the
+        rotation, and for the centre the shift that moves the photographed scene as much, the photo's median point depth
+        times the angle (photos without points: the median over the others). With `focal_sigma` {COLMAP camera id:
+        relative standard deviation of its focal length} (the focal lengths are fitted too), the shift along the optical
+        axis also gets the depth change that focal uncertainty allows, depth x sqrt(angle^2 + sigma_f^2): an SfM that
+        got a focal length some percent long put that photo as many percent nearer its scene, and moving it back is what
+        correcting the focal length asks (`plausible` allows the same). 0 (the photo is not moved) for photos not named;
+        None when no photo is moved."""
         depths = self.depths.clone()
         known = torch.isfinite(depths) & (depths > 0)
         angles = torch.tensor([np.radians(rotation_deg.get(name, 0.0)) for name in self.names], dtype=torch.float64)
         if not bool(known.any()) or not bool((angles > 0).any()):
             return None
         depths[~known] = depths[known].median()
-        return torch.cat([angles[:, None].expand(-1, 3), (depths * angles)[:, None].expand(-1, 3)], dim=1)
+        focal = torch.tensor([(focal_sigma or {}).get(camera_id, 0.0) for camera_id in self.camera_ids], dtype=torch.float64)[self.camera_of]
+        along_axis = torch.where(angles > 0, torch.sqrt(angles**2 + focal**2), angles)
+        return torch.stack([angles, angles, angles, depths * angles, depths * angles, depths * along_axis], dim=1)
 
     def scale_motion_px(self, meta_to_dataparser: Sim3, log_factor: float = SCALE_RESOLUTION) -> tuple[float, float]:
         """(motion, error) in pixels of the photos under a numpy Sim3 (meta -> dataparser): the RMS distance the keypoints'
@@ -264,7 +271,8 @@ class FreeCameras:
     """What a keypoint fit may change besides the Sim(3), and the priors that hold it. Tensors: `log_focal` [G] log
     focal scales of the term's COLMAP cameras, `focal_sigma` [G] their priors (relative standard deviations);
     `pose_corrections` [P', 6] per photo with keypoints a rotation vector (radians, about the camera centre, in the meta
-    frame) and a centre shift (meta units), `pose_sigma` [P', 6] their priors; `k1_delta` [G] the change of each camera's
+    frame) and a centre shift (meta units, along the photo's own camera axes: x, y, z the optical axis), `pose_sigma`
+    [P', 6] their priors; `k1_delta` [G] the change of each camera's
     first radial coefficient, `k1_sigma` [G] its prior. None: not free."""
 
     log_focal: Optional[Tensor] = None
@@ -290,8 +298,9 @@ class FreeCameras:
 
 
 def corrected_rotations_and_centres(rotations: Tensor, centres: Tensor, corrections: Tensor) -> tuple[Tensor, Tensor]:
-    """Cameras moved by their corrections: rotations [P, 3, 3] (world-to-camera) times exp([omega]_x) and centres [P, 3]
-    plus the shift, for `corrections` [P, 6] = (omega, shift), all in the meta frame."""
+    """Cameras moved by their corrections: rotations [P, 3, 3] (world-to-camera, meta frame) times exp([omega]_x) and
+    centres [P, 3] (meta frame) plus the shift, for `corrections` [P, 6] = (omega in the meta frame, shift along the
+    camera's own axes as `rotations` give them)."""
     omega = corrections[:, :3]
     zero = torch.zeros_like(omega[:, 0])
     skew = torch.stack([
@@ -299,7 +308,7 @@ def corrected_rotations_and_centres(rotations: Tensor, centres: Tensor, correcti
         torch.stack([omega[:, 2], zero, -omega[:, 0]], -1),
         torch.stack([-omega[:, 1], omega[:, 0], zero], -1),
     ], 1)
-    return rotations @ torch.linalg.matrix_exp(skew), centres + corrections[:, 3:]
+    return rotations @ torch.linalg.matrix_exp(skew), centres + torch.einsum("pji,pj->pi", rotations, corrections[:, 3:])
 
 
 @dataclass
@@ -380,7 +389,7 @@ class Anchoring:
         focal_sigma, k1_sigma = self.intrinsics_priors(kernel / grid_size) if focal or distortion else ({}, {})
         focal_free = freedom(focal_sigma, term.camera_ids) if focal else None
         k1_free = freedom(k1_sigma, term.camera_ids) if distortion else None
-        pose_sigma = term.pose_sigma(self.rotation_priors(pose_prior_scale)) if pose_prior_scale is not None else None
+        pose_sigma = term.pose_sigma(self.rotation_priors(pose_prior_scale), focal_sigma if focal else None) if pose_prior_scale is not None else None
         if focal_free is None and pose_sigma is None and k1_free is None:
             return CameraFit(start)
         fitted = fit_jointly(term, start, centre, iterations, focal_free, pose_sigma, k1_free)

@@ -128,7 +128,8 @@ class RegistrationSettings:
     """In the same joint fit as `refine_focal` (with or without it), move each photo with keypoints inside the meta-image
     by a small rotation and centre shift, each held by a prior: `photo_pose_prior_scale` times the meta-image SfM's own
     uncertainty of that photo's orientation relative to the others (`relative_rotation_uncertainty`; the centre shift:
-    the photo's median point depth times that angle). Every later stage renders the moved cameras, the result is the
+    the photo's median point depth times that angle, and along its optical axis, with `refine_focal`, also the depth
+    change its focal uncertainty allows: `KeypointTerm.pose_sigma`). Every later stage renders the moved cameras, the result is the
     final Sim(3) composed with the one that maps the meta-image's cameras onto the moved ones
     (`geometry.alignment.align_cameras`), and transform.json records each photo's correction. For SfM models of a few
     photos whose relative poses are a fraction of a degree off (docs/measurements.md "Per-photo poses"); off = the meta-image is one

@@ -272,8 +272,8 @@ class FreeCameras:
     focal scales of the term's COLMAP cameras, `focal_sigma` [G] their priors (relative standard deviations);
     `pose_corrections` [P', 6] per photo with keypoints a rotation vector (radians, about the camera centre, in the meta
     frame) and a centre shift (meta units, along the photo's own camera axes: x, y, z the optical axis), `pose_sigma`
-    [P', 6] their priors; `k1_delta` [G] the change of each camera's
-    first radial coefficient, `k1_sigma` [G] its prior. None: not free."""
+    [P', 6] their priors; `k1_delta` [G] the change of each camera's first radial coefficient, `k1_sigma` [G] its prior.
+    None: not free."""
 
     log_focal: Optional[Tensor] = None
     focal_sigma: Optional[Tensor] = None
@@ -559,7 +559,8 @@ def plausible(free: FreeCameras, camera_of: Tensor) -> bool:
         limit = np.radians(MAX_POSE_CHANGE_DEG)
         turn, shift = free.pose_corrections[:, :3].norm(dim=1), free.pose_corrections[:, 3:].norm(dim=1)
         depth_change = free.log_focal.abs()[camera_of] if free.log_focal is not None else torch.zeros_like(turn)
-        # depth = centre sigma / rotation sigma (`KeypointTerm.pose_sigma`), so shift > depth x allowance reads as below;
+        # depth = the centre's sigma across the optical axis (index 3: depth x angle) / rotation sigma
+        # (`KeypointTerm.pose_sigma`), so shift > depth x allowance reads as below;
         # photos not moved have sigma 0 and shift 0: 0 > 0 is False
         allowance = limit + depth_change
         if bool((turn > limit).any() or (shift * free.pose_sigma[:, 0] > allowance * free.pose_sigma[:, 3]).any()):

@@ -211,8 +211,13 @@ def colmap_cameras(scene: Path, output: Path) -> Path:
     return output
 
 
-def test_real_scene_builder_writes_the_bench_layout(photo_scene, photos, tmp_path):
+def test_real_scene_builder_writes_the_bench_layout(photo_scene, photos, tmp_path, monkeypatch):
     from sg_nerfstudio.bench.layout import read_benchmark
+    from sg_nerfstudio.photos import scene as scene_module
+
+    threads = []  # every SfM of the builder on one thread: pycolmap's multi-threaded mapper gives another scene each run
+    reconstruct = scene_module.reconstruct
+    monkeypatch.setattr(scene_module, "reconstruct", lambda *args, **kwargs: threads.append(args[3].threads) or reconstruct(*args, **kwargs))
 
     cameras = colmap_cameras(photo_scene, tmp_path / "cameras")
     settings = RealSceneSettings(
@@ -238,6 +243,7 @@ def test_real_scene_builder_writes_the_bench_layout(photo_scene, photos, tmp_pat
     truth = scene.metas[0].ground_truth
     assert 0 < truth.scale and np.isfinite(np.asarray(truth)).all()
     assert not (output / "work").exists()
+    assert threads and set(threads) == {1}, threads
 
 
 def test_real_scene_bad_inputs(photos, tmp_path, capsys):

@@ -28,7 +28,8 @@ with cameras this builds the same kind of scene:
    the solution's cameras) with its distance from the first: a 3-photo SfM is not exactly a similarity of the
    solution, and the Sim(3) that places its cameras and the one that places its points differ by that much.
 
-Written atomically; `scene.json` records the settings, the split, what was left out and why.
+Written atomically; `scene.json` records the settings, the split, what was left out and why. The same photos and
+settings give the same scene, byte for byte: every SfM runs on one thread (SFM_THREADS).
 """
 
 from __future__ import annotations
@@ -94,6 +95,15 @@ class RealSceneSettings:
     min_reference_points: int = 100
     """Fewer triangulated reference points than this cannot initialise a splat: refused."""
     seed: int = 0
+
+
+SFM_THREADS = 1
+"""Threads of every SfM run of the builder. pycolmap's multi-threaded mapper is not deterministic: three builds of
+Strecha fountain-P11 with `--scene.reference-every 3 --scene.meta-size 3 --scene.photo-size 800 --scene.seed 41` on all
+cores gave meta-image 0005-0008 ground truths whose own residual was 1.64°, 1.43° and 1.44° (point-based truth 0.315,
+0.208, 0.209 away), so a benchmark scene rebuilt on another machine was another scene. On one thread three builds wrote
+byte-identical models (8 s instead of 5 s for that scene; docs/measurements.md "Benchmark scenes that rebuild the
+same")."""
 
 
 @dataclass
@@ -168,7 +178,7 @@ def solve(prepared, work: Path, cameras: Optional[Path], settings: RealSceneSett
     sizes = {p.name: p.size for p in prepared}
     if cameras is None:
         stage("solution: SfM on all photos")
-        result = reconstruct(work / "clean", names, work / "solution", SfmSettings(seed=settings.seed))
+        result = reconstruct(work / "clean", names, work / "solution", SfmSettings(seed=settings.seed, threads=SFM_THREADS))
         if not result.models:
             raise RealSceneError(f"SfM on all {len(names)} photos formed no model; expected overlapping photos of one place (or give --cameras).")
         model = result.models[0]
@@ -329,7 +339,7 @@ def write_meta(directory: Path, work: Path, photos: list[SolvedPhoto], settings:
         image.save(styled / photo.name, format="JPEG", quality=quality)
     names = [p.name for p in photos]
     record = {"name": directory.name, "photos": names, "looks": looks, "written": False}
-    result = reconstruct(styled, names, work / "sfm", SfmSettings(min_model_size=3, seed=settings.seed))
+    result = reconstruct(styled, names, work / "sfm", SfmSettings(min_model_size=3, seed=settings.seed, threads=SFM_THREADS))
     if not result.models:
         record["why"] = "; ".join(f"{n}: {r}" for n, r in result.unregistered())
         return record

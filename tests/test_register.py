@@ -1012,6 +1012,47 @@ def test_camera_fit_ends_where_the_priors_last_digits_do_not_matter(reference, m
     assert all(np.allclose(fits[0].poses[name], fits[1].poses[name], atol=1e-7, rtol=0) for name in fits[0].poses)
 
 
+def test_the_camera_adjustment_moves_every_photo_with_its_own_tracks(reference, meta, ground_truth):
+    """`camera_fit: adjustment` (registration/anchored_adjustment.py): a meta-image whose SfM put every focal length 5%
+    long and turned one photo by 1°, with anchors for every photo but the turned one. The bundle adjustment of its own
+    (exact) tracks with the anchors brings every focal scale within 0.1% of 1/1.05 and every camera within 0.01° of the
+    truth, the turned photo's too: its own tracks carry it, where the prior fit cannot move a photo without anchors. A
+    focal length 50% long is beyond MAX_FOCAL_CHANGE (the start is kept), and a camera model with more distortion terms
+    than k1 is left to the prior fit. A registration with it records a correction for every photo."""
+    from sg_nerfstudio.geometry.alignment import camera_residuals
+    from sg_nerfstudio.registration.anchored_adjustment import adjustable
+    from sg_nerfstudio.registration.keypoints import Anchoring
+
+    turned = meta.photos[0].name
+    anchors = [k for k in projected_keypoints(reference, meta, ground_truth, 60, 0.1, seed=4) if k.name != turned]
+    wrong = with_wrong_focal_lengths(with_one_photo_turned(meta, 1.0), 1.05)
+    anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)  # in the world frame: no dataparser transform needed
+    rigid = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=1000)
+    fit = anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True, adjustment=True)
+    assert sorted(fit.poses) == sorted(fit.focal_scales) == sorted(photo.name for photo in meta.photos)
+    assert np.allclose(list(fit.focal_scales.values()), 1 / 1.05, atol=0.001), fit.focal_scales
+    true_cameras = np.stack([ground_truth.move_camera(pose) for pose in meta.poses])  # reference world
+    moved_off, _ = camera_residuals(fit.transform, np.stack(wrong.with_poses(fit.poses).poses), true_cameras)
+    rigid_off, _ = camera_residuals(rigid, np.stack(wrong.poses), true_cameras)
+    assert rigid_off[0] > 0.5 and moved_off.max() < 0.01, (rigid_off, moved_off)
+    priors = anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True)
+    assert turned not in priors.poses
+
+    far_off = Anchoring(with_wrong_focal_lengths(meta, 1.5), anchors, Sim3.identity(), 1.0)
+    kept = far_off.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, adjustment=True)
+    assert kept.transform is rigid and kept.poses == {} and kept.focal_scales == {}
+    radial = pycolmap.Reconstruction(meta.reconstruction)
+    camera = next(iter(radial.cameras.values()))
+    radial.cameras[camera.camera_id] = pycolmap.Camera(model="RADIAL", width=camera.width, height=camera.height, params=[*camera.params, 0.0], camera_id=camera.camera_id)
+    assert adjustable(meta) and not adjustable(replace(meta, reconstruction=radial))
+
+    settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0, keypoint_prealign_steps=1000,
+                                    prealigned_steps=2, prealigned_lr=1e-5, refine_focal=True, refine_photo_poses=True, camera_fit="adjustment")
+    result = register(reference, wrong, ground_truth, settings, keypoints=anchors)
+    assert sorted(result.pose_corrections) == sorted(photo.name for photo in meta.photos)
+    assert result.pose_corrections[turned]["rotation_deg"] > 0.5
+
+
 def test_stages_after_the_pose_fit_keep_its_optimum(reference, meta, ground_truth):
     """After the camera fit moved the photos under the narrow kernel (FIT_KERNEL_FRACTION), the stages weigh the keypoints
     with that kernel too: minimised over the Sim(3) alone from where the fit left it, their term stays there, where the

@@ -52,6 +52,7 @@ from torch import Tensor
 from sg_nerfstudio.geometry.meta_image import MetaImage, intrinsics_uncertainty, radial_k1_index, relative_rotation_uncertainty
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+from sg_nerfstudio.registration.anchored_adjustment import adjust_with_anchors, adjustable, pose_changes
 from sg_nerfstudio.registration.least_squares import RobustResiduals, levenberg_marquardt
 
 KERNEL_CELLS = 0.5
@@ -361,7 +362,7 @@ class Anchoring:
 
     def fit_cameras(
         self, start: Sim3, centre: np.ndarray, grid_size: int, iterations: int, focal: bool, pose_prior_scale: Optional[float],
-        distortion: bool = False,
+        distortion: bool = False, adjustment: bool = False,
     ) -> CameraFit:
         """The keypoint term minimised over the Sim(3) *and* the meta-image's cameras, from `start` (best already
         pre-aligned): with `focal`, one focal-length scale per COLMAP camera of the photos with keypoints (one per photo
@@ -381,7 +382,13 @@ class Anchoring:
         pose. With `distortion`, each camera of RADIAL_MODELS also fits its first radial coefficient k1 under the SfM's
         own uncertainty of it, also at the keypoints' noise (the keypoints compared in the distorted photo,
         `KeypointTerm.distorted_errors`): a 3-photo model's k1 can be off by a few hundredths, which moves its cameras
-        along their axes as a wrong focal length does."""
+        along their axes as a wrong focal length does.
+
+        With `adjustment` (and `pose_prior_scale` given: the photos' poses are fitted), where every camera's model has at
+        most k1 (`anchored_adjustment.adjustable`), the fit is instead one bundle adjustment of the meta-image's own
+        observations with the anchors (`anchored_adjustment`): no priors, every photo moved, `pose_prior_scale` unused."""
+        if adjustment and pose_prior_scale is not None and adjustable(self.meta):
+            return self.adjusted_cameras(start, focal, distortion)
         kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS
         term = self.term(grid_size, 1.0, kernel)
         if not term or iterations <= 0:
@@ -414,6 +421,27 @@ class Anchoring:
             moved = free.pose_sigma[:, 0] > 0
             fit.poses = {name: torch.cat([r, t[:, None]], 1).numpy() for name, r, t, m in zip(term.names, rotations, translations, moved) if m}
         return fit
+
+    def adjusted_cameras(self, start: Sim3, focal: bool, distortion: bool) -> CameraFit:
+        """`fit_cameras` by `anchored_adjustment.adjust_with_anchors` from `start` (numpy Sim3, meta -> dataparser); `start`
+        alone when the adjuster fails or moves a camera beyond what `plausible` allows the prior fit (a focal change
+        beyond MAX_FOCAL_CHANGE, a k1 change beyond MAX_K1_CHANGE, a turn beyond MAX_POSE_CHANGE_DEG or a centre shift
+        beyond its depth times that angle plus its focal change)."""
+        adjusted = adjust_with_anchors(self.meta, self.keypoints, self.world_to_dataparser, start, focal, distortion, FIT_KERNEL_FRACTION)
+        if adjusted is None:
+            return CameraFit(start)
+        transform, poses, focal_change, radial_k1 = adjusted
+        cameras = self.meta.reconstruction.cameras
+        if any(abs(np.log(change)) > np.log1p(MAX_FOCAL_CHANGE) for change in focal_change.values()):
+            return CameraFit(start)
+        if any(abs(k1 - cameras[c].params[radial_k1_index(cameras[c])]) > MAX_K1_CHANGE for c, k1 in radial_k1.items()):
+            return CameraFit(start)
+        angles, shifts, depths = pose_changes(self.meta, poses)
+        depth_change = np.array([abs(np.log(focal_change.get(int(p.camera.camera_id), 1.0))) for p in self.meta.photos])
+        if (angles > MAX_POSE_CHANGE_DEG).any() or (shifts > depths * (np.radians(MAX_POSE_CHANGE_DEG) + depth_change)).any():
+            return CameraFit(start)
+        focal_scales = {p.name: p.focal_scale * focal_change[int(p.camera.camera_id)] for p in self.meta.photos} if focal_change else {}
+        return CameraFit(transform, focal_scales, poses, radial_k1)
 
     def rotation_priors(self, scale: float) -> dict[str, float]:
         """{photo name: prior standard deviation (degrees) of its rotation correction}: `scale` times how well the

@@ -286,7 +286,7 @@ def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, se
     pose_prior = settings.photo_pose_prior_scale if settings.refine_photo_poses else None
     return anchor.fit_cameras(
         current, update_centre(meta, current, settings), grid_size, settings.camera_fit_iterations, settings.refine_focal, pose_prior,
-        settings.refine_distortion,
+        settings.refine_distortion, settings.camera_fit == "adjustment",
     )
 
 

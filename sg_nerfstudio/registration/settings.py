@@ -140,6 +140,15 @@ class RegistrationSettings:
     keypoints' noise; the keypoints' rays are undistorted again with the fitted focal length and k1, every later stage
     renders against the photos undistorted with it, transform.json and the aligned model carry it. A 3-photo SfM can get k1 a few hundredths off
     (docs/measurements.md "Other splits and looks of the same real photos"); off = the SfM's distortion as it is (the paper)."""
+    camera_fit: Literal["priors", "adjustment"] = "priors"
+    """How `refine_photo_poses` fits the cameras (with `refine_focal` / `refine_distortion`). `priors`: the keypoints
+    alone, each photo's focal length, k1, rotation and centre held by its own prior (`keypoints.fit_jointly`).
+    `adjustment`: one pycolmap bundle adjustment of the meta-image's own SfM observations with the keypoint anchors as
+    constant points (registration/anchored_adjustment.py), which moves a photo's focal length, distortion, depth and
+    orientation together as far as its own tracks allow; every photo moves, with anchors or not. On the 13 real
+    fountain-P11 meta-images it brought the fit's ΔR 0.165 -> 0.114° and ΔT 0.012 -> 0.010 on average, the worst ΔT
+    0.057 -> 0.021 (docs/measurements.md "The camera fit as a bundle adjustment"). Meta-images with a camera model of
+    more distortion terms than k1 use `priors`."""
     photo_pose_prior_scale: float = 1.0
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
     camera_fit_iterations: int = 100

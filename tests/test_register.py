@@ -1017,8 +1017,9 @@ def test_the_camera_adjustment_moves_every_photo_with_its_own_tracks(reference, 
     long and turned one photo by 1°, with anchors for every photo but the turned one. The bundle adjustment of its own
     (exact) tracks with the anchors brings every focal scale within 0.1% of 1/1.05 and every camera within 0.01° of the
     truth, the turned photo's too: its own tracks carry it, where the prior fit cannot move a photo without anchors. A
-    focal length 50% long is beyond MAX_FOCAL_CHANGE (the start is kept), and a camera model with more distortion terms
-    than k1 is left to the prior fit. A registration with it records a correction for every photo."""
+    focal length 50% long is beyond MAX_FOCAL_CHANGE (the start is kept); one photo's anchors, which leave the scale free,
+    and a camera model with more distortion terms than k1 are left to the prior fit. A registration with it records a
+    correction for every photo."""
     from sg_nerfstudio.geometry.alignment import camera_residuals
     from sg_nerfstudio.registration.anchored_adjustment import adjustable
     from sg_nerfstudio.registration.keypoints import Anchoring
@@ -1038,8 +1039,11 @@ def test_the_camera_adjustment_moves_every_photo_with_its_own_tracks(reference, 
     priors = anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True)
     assert turned not in priors.poses
 
+    one_photo = Anchoring(wrong, anchors[:1], Sim3.identity(), 1.0)  # its anchors leave the scale free: the prior fit
+    assert not one_photo.fix_scale(rigid, 32)
+    assert sorted(one_photo.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, adjustment=True).poses) == [anchors[0].name]
     far_off = Anchoring(with_wrong_focal_lengths(meta, 1.5), anchors, Sim3.identity(), 1.0)
-    kept = far_off.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, adjustment=True)
+    kept = far_off.adjusted_cameras(rigid, focal=True, distortion=False)
     assert kept.transform is rigid and kept.poses == {} and kept.focal_scales == {}
     radial = pycolmap.Reconstruction(meta.reconstruction)
     camera = next(iter(radial.cameras.values()))

@@ -385,9 +385,14 @@ class Anchoring:
         along their axes as a wrong focal length does.
 
         With `adjustment` (and `pose_prior_scale` given: the photos' poses are fitted), where every camera's model has at
-        most k1 (`anchored_adjustment.adjustable`), the fit is instead one bundle adjustment of the meta-image's own
-        observations with the anchors (`anchored_adjustment`): no priors, every photo moved, `pose_prior_scale` unused."""
-        if adjustment and pose_prior_scale is not None and adjustable(self.meta):
+        most k1 (`anchored_adjustment.adjustable`) and the anchors fix the scale (`anchors_fix_scale` at `start`), the fit
+        is instead one bundle adjustment of the meta-image's own observations with the anchors (`anchored_adjustment`):
+        no priors, every photo moved, `pose_prior_scale` unused. Anchors of one photo, or of photos taken from one spot,
+        leave the model's scale about them free, a direction the adjuster would end anywhere along (fountain-P11
+        0005-0008 with one photo's anchors: 0.90 and 0.99 of the truth's scale from starts at 1.00 and 1.10); the prior
+        fit moves only the anchored photos and the registration then searches that scale
+        (`optimize.scale_the_anchors_leave_free`)."""
+        if adjustment and pose_prior_scale is not None and adjustable(self.meta) and self.fix_scale(start, grid_size):
             return self.adjusted_cameras(start, focal, distortion)
         kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS
         term = self.term(grid_size, 1.0, kernel)
@@ -421,6 +426,12 @@ class Anchoring:
             moved = free.pose_sigma[:, 0] > 0
             fit.poses = {name: torch.cat([r, t[:, None]], 1).numpy() for name, r, t, m in zip(term.names, rotations, translations, moved) if m}
         return fit
+
+    def fix_scale(self, meta_to_dataparser: Sim3, grid_size: int) -> bool:
+        """Whether the anchors fix the Sim(3)'s scale under `meta_to_dataparser` (numpy): `anchors_fix_scale` of the
+        term's `scale_motion_px`."""
+        term = self.term(grid_size, 1.0)
+        return bool(term) and anchors_fix_scale(*term.scale_motion_px(meta_to_dataparser))
 
     def adjusted_cameras(self, start: Sim3, focal: bool, distortion: bool) -> CameraFit:
         """`fit_cameras` by `anchored_adjustment.adjust_with_anchors` from `start` (numpy Sim3, meta -> dataparser); `start`

@@ -12,14 +12,16 @@ Why not the prior fit (`keypoints.fit_jointly`): it holds each photo's focal len
 independent prior (the SfM's marginal standard deviations). A wrong focal length in a 3-photo SfM comes with a wrong
 depth, k1 and relative rotation together; independent priors charge that joint move for every parameter it touches. On
 Strecha fountain-P11's fourth split (meta-image 0005-0008, SfM focal lengths 7-16% long) the prior fit left them 2-6%
-long and ΔT at 0.057; this adjustment brings them within 0.3-2.2% and ΔT to 0.015 (docs/measurements.md "The camera fit
-as a bundle adjustment", which has the 13 fountain meta-images).
+long and the registration's ΔT at 0.057; this adjustment brings them within 0.3-2.2% of the calibrated ones and ΔT to
+0.016 (docs/measurements.md "The camera fit as a bundle adjustment", which has the 23 real-photo meta-images).
 
 The result is a `CameraFit` like the prior fit's: the Sim(3) that maps the meta-image's own cameras onto the adjusted
 ones (`geometry.alignment.align_cameras`, the rule of the benchmarks' ground truth) and, relative to it, each photo's
-moved pose, focal scale and k1. Every photo moves, with anchors or not (its own observations carry it). Cameras of
-models with more distortion terms than k1 (RADIAL, OPENCV, fisheye, ...) are left to the prior fit: COLMAP's adjuster
-frees all of a camera's extra parameters or none. Frames: the meta-image frame, the reference world (COLMAP model) of
+moved pose, focal scale and k1. Every photo moves, with anchors or not (its own observations carry it). Two cases are
+left to the prior fit (`Anchoring.fit_cameras` decides): cameras of models with more distortion terms than k1 (RADIAL,
+OPENCV, fisheye, ...), as COLMAP's adjuster frees all of a camera's extra parameters or none; and anchors that leave
+the scale free (one photo's, or photos taken from one spot), about which the adjusted model's scale is a direction the
+solver ends anywhere along. Frames: the meta-image frame, the reference world (COLMAP model) of
 the anchors' points, the dataparser frame of the registration (`world_to_dataparser`)."""
 
 from __future__ import annotations

@@ -145,10 +145,10 @@ class RegistrationSettings:
     alone, each photo's focal length, k1, rotation and centre held by its own prior (`keypoints.fit_jointly`).
     `adjustment`: one pycolmap bundle adjustment of the meta-image's own SfM observations with the keypoint anchors as
     constant points (registration/anchored_adjustment.py), which moves a photo's focal length, distortion, depth and
-    orientation together as far as its own tracks allow; every photo moves, with anchors or not. On the 13 real
-    fountain-P11 meta-images it brought the fit's ΔR 0.165 -> 0.114° and ΔT 0.012 -> 0.010 on average, the worst ΔT
-    0.057 -> 0.021 (docs/measurements.md "The camera fit as a bundle adjustment"). Meta-images with a camera model of
-    more distortion terms than k1 use `priors`."""
+    orientation together as far as its own tracks allow; every photo moves, with anchors or not. On the 46 SIFT starts
+    of the twelve real-photo benchmark scenes (fast-cpu) mean ΔR 0.129 -> 0.105° and ΔT 0.011 -> 0.010, the worst
+    meta-image's ΔT 0.057 -> 0.021 (docs/measurements.md "The camera fit as a bundle adjustment"). Where the anchors
+    leave the scale free (one photo's) or a camera model has more distortion terms than k1, `priors` runs instead."""
     photo_pose_prior_scale: float = 1.0
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
     camera_fit_iterations: int = 100

@@ -43,7 +43,6 @@ ADJUSTABLE_MODELS = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL"}
 ANCHOR_OBSERVATIONS = 2
 """Each anchor enters as this many observations of its constant point: COLMAP's adjuster takes only points with a track
 of two or more. On fountain-P11's 0005-0008, 2, 4 and 6 moved the cameras by under 0.002 scene units."""
-ITERATIONS = 100
 
 
 def adjustable(meta: MetaImage) -> bool:
@@ -67,12 +66,11 @@ def adjust_with_anchors(
         model.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(pose[:, :3]), pose[:, 3])
     scale, rotation, translation = world_from_meta.scale, world_from_meta.linear / world_from_meta.scale, world_from_meta.translation
     model.transform(pycolmap.Sim3d(float(scale), pycolmap.Rotation3d(rotation), translation))
-    for photo in meta.photos:  # focal scales an earlier fit left on the photos (none before the first)
-        if photo.focal_scale != 1.0:
-            camera = model.cameras[int(photo.camera.camera_id)]
-            params = np.array(camera.params)
-            params[list(camera.focal_length_idxs())] *= photo.focal_scale
-            camera.params = params
+    for camera_id, factor in meta.camera_focal_scales().items():  # an earlier fit's focal scales (none before the first)
+        camera = model.cameras[camera_id]
+        params = np.array(camera.params)
+        params[list(camera.focal_length_idxs())] *= factor
+        camera.params = params
     given_focal = {camera_id: camera.mean_focal_length() for camera_id, camera in model.cameras.items()}
     config = with_anchor_observations(model, keypoints)
     options = pycolmap.BundleAdjustmentOptions()
@@ -81,7 +79,6 @@ def adjust_with_anchors(
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     sides = [max(photo.camera.width, photo.camera.height) for photo in meta.photos]
     options.ceres.loss_function_scale = float(loss_fraction * np.median(sides))
-    options.ceres.solver_options.max_num_iterations = ITERATIONS
     options.ceres.solver_options.num_threads = 1  # deterministic
     summary = pycolmap.create_default_ceres_bundle_adjuster(options, config, model).solve()
     if summary.termination_type == pycolmap.BundleAdjustmentTerminationType.FAILURE:

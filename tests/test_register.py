@@ -1049,6 +1049,10 @@ def test_the_camera_adjustment_moves_every_photo_with_its_own_tracks(reference, 
     camera = next(iter(radial.cameras.values()))
     radial.cameras[camera.camera_id] = pycolmap.Camera(model="RADIAL", width=camera.width, height=camera.height, params=[*camera.params, 0.0], camera_id=camera.camera_id)
     assert adjustable(meta) and not adjustable(replace(meta, reconstruction=radial))
+    rig = pycolmap.Reconstruction(meta.reconstruction)  # two photos' cameras in one rig: the prior fit
+    first, second = sorted(rig.cameras)[:2]
+    next(r for r in rig.rigs.values() if r.ref_sensor_id.id == first).add_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, second), pycolmap.Rigid3d())
+    assert not adjustable(replace(meta, reconstruction=rig))
 
     settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0, keypoint_prealign_steps=1000,
                                     prealigned_steps=2, prealigned_lr=1e-5, refine_focal=True, refine_photo_poses=True, camera_fit="adjustment")

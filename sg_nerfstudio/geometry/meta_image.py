@@ -56,6 +56,12 @@ class Photo:
         return self.points_camera[:, 2]
 
     @property
+    def median_depth(self) -> float:
+        """Median depth (meta units) of the sparse points it observes in front of it; NaN when it observes none."""
+        depths = self.point_depths[self.point_depths > 0]
+        return float(np.median(depths)) if len(depths) else float("nan")
+
+    @property
     def centre(self) -> Array:
         return -self.cam_from_world[:, :3].T @ self.cam_from_world[:, 3]
 
@@ -168,9 +174,8 @@ class MetaImage:
         rotation and translation change the images independently."""
         targets = []
         for photo in self.photos:
-            depths = photo.point_depths[photo.point_depths > 0]
-            if len(depths):
-                targets.append(photo.centre + float(np.median(depths)) * photo.cam_from_world[2, :3])
+            if np.isfinite(photo.median_depth):
+                targets.append(photo.centre + photo.median_depth * photo.cam_from_world[2, :3])
         return transform.apply(np.mean(targets, axis=0)) if targets else self.centroid_under(transform)
 
 

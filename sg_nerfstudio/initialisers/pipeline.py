@@ -363,12 +363,11 @@ class Initialiser:
         photo registered, or (colmap, `because`) when the registered photos gave no Sim(3): the one with the most inliers
         (photos taken from one spot, whose centres give no scale, or that disagree)."""
         photo = next(p for p in meta.photos if p.name == observations.name)
-        meta_depths = photo.point_depths[photo.point_depths > 0]
         inliers = observations.points3D[pose.inlier_mask]
         reference_depths = (inliers @ pose.cam_from_reference[:, :3].T + pose.cam_from_reference[:, 3])[:, 2]
         transform = similarity_from_one_photo(
             observations.cam_from_meta, pose.cam_from_reference,
-            float(np.median(meta_depths)) if len(meta_depths) else float("nan"),
+            photo.median_depth,
             float(np.median(reference_depths[reference_depths > 0])) if (reference_depths > 0).any() else float("nan"),
         )
         if transform is None:

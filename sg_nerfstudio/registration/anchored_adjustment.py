@@ -19,7 +19,7 @@ The result is a `CameraFit` like the prior fit's: the Sim(3) that maps the meta-
 ones (`geometry.alignment.align_cameras`, the rule of the benchmarks' ground truth) and, relative to it, each photo's
 moved pose, focal scale and k1. Every photo moves, with anchors or not (its own observations carry it). Two cases are
 left to the prior fit (`Anchoring.fit_cameras` decides): cameras of models with more distortion terms than k1 (RADIAL,
-OPENCV, fisheye, ...), as COLMAP's adjuster frees all of a camera's extra parameters or none; and anchors that leave
+OPENCV, fisheye, ...), as COLMAP's adjuster frees all of a camera's extra parameters or none; multi-camera rigs; and anchors that leave
 the scale free (one photo's, or photos taken from one spot), about which the adjusted model's scale is a direction the
 solver ends anywhere along. Frames: the meta-image frame, the reference world (COLMAP model) of
 the anchors' points, the dataparser frame of the registration (`world_to_dataparser`)."""
@@ -46,8 +46,11 @@ of two or more. On fountain-P11's 0005-0008, 2, 4 and 6 moved the cameras by und
 
 
 def adjustable(meta: MetaImage) -> bool:
-    """Whether every camera of the meta-image is of ADJUSTABLE_MODELS."""
-    return all(camera.model.name in ADJUSTABLE_MODELS for camera in meta.reconstruction.cameras.values())
+    """Whether every camera of the meta-image is of ADJUSTABLE_MODELS and every photo is its own rig (one sensor a rig, as
+    COLMAP's mapper writes for photos). `adjust_with_anchors` sets each photo's frame pose to the photo's camera pose,
+    which for a multi-camera rig would be the pose of its reference sensor only; such models take the prior fit."""
+    model = meta.reconstruction
+    return all(camera.model.name in ADJUSTABLE_MODELS for camera in model.cameras.values()) and all(rig.num_sensors() == 1 for rig in model.rigs.values())
 
 
 def adjust_with_anchors(
@@ -151,8 +154,7 @@ def pose_changes(meta: MetaImage, poses: dict[str, Array]) -> tuple[Array, Array
         pose = poses[photo.name]
         angles.append(rotation_angle_deg(pose[:, :3] @ photo.cam_from_world[:, :3].T))
         shifts.append(float(np.linalg.norm(camera_centres(pose[None])[0] - photo.centre)))
-        positive = photo.point_depths[photo.point_depths > 0]
-        depths.append(float(np.median(positive)) if len(positive) else np.nan)
+        depths.append(photo.median_depth)
     depths = np.array(depths)
     depths[~np.isfinite(depths)] = np.nanmedian(depths) if np.isfinite(depths).any() else 1.0
     return np.array(angles), np.array(shifts), depths

@@ -113,8 +113,7 @@ class KeypointTerm:
                 continue
             index = len(cam_from_meta)
             self.names.append(photo_meta.name)
-            positive = photo_meta.point_depths[photo_meta.point_depths > 0]
-            depths.append(float(np.median(positive)) if len(positive) else np.nan)
+            depths.append(photo_meta.median_depth)
             cam_from_meta.append(torch.from_numpy(photo_meta.cam_from_world))
             focal_scales.append(photo_meta.focal_scale)
             camera_ids.append(int(photo_meta.camera.camera_id))

@@ -251,3 +251,56 @@ def test_anchored_photos_keeps_the_photos_with_the_most_correspondences():
     for count, expected in ((1, ["b"]), (2, ["b", "c"]), (0, ["a", "b", "c"])):
         runner.options = BenchOptions(settings=settings, anchored_photos=count)
         assert [k.name for k in runner.keypoints(None, settings)] == expected
+
+
+def test_a_twin_copy_has_its_photos_pose_zoomed_camera_and_observations(suite, tmp_path):
+    """bench/twins.py: the twin of a photo sits at the photo's pose with its focal lengths / zoom, observes the photo's
+    points inside the crop where that camera projects them, and carries the photo's central crop; the ground truth is
+    copied unchanged. A twin run keeps the anchors of the twin and its photo only."""
+    import pycolmap
+    from PIL import Image
+
+    from sg_nerfstudio.bench.runs import BenchOptions
+    from sg_nerfstudio.bench.twins import TwinSceneRunner, add_twin
+    from sg_nerfstudio.errors import InputError
+    from sg_nerfstudio.geometry.meta_image import load_meta_image
+    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+    from sg_nerfstudio.registration.settings import RegistrationSettings
+
+    source = read_benchmark(suite)[0].metas[0].directory
+    photo = load_meta_image(source).photos[1].name
+    copy = tmp_path / "twin"
+    name = add_twin(source, copy, photo, zoom=0.8)
+    assert (copy / "gt_transform.json").read_bytes() == (source / "gt_transform.json").read_bytes()
+    meta = load_meta_image(copy)
+    assert len(meta.photos) == len(load_meta_image(source).photos) + 1
+    model = pycolmap.Reconstruction(copy / "sparse" / "0")
+    original, twin = model.find_image_with_name(photo), model.find_image_with_name(name)
+    camera, twin_camera = model.cameras[original.camera_id], model.cameras[twin.camera_id]
+    assert np.allclose(twin.cam_from_world().matrix(), original.cam_from_world().matrix())
+    assert np.isclose(twin_camera.mean_focal_length(), camera.mean_focal_length() / 0.8)
+    centre = np.array([camera.width, camera.height]) / 2
+    observed = [p for p in twin.points2D if p.has_point3D()]
+    assert 0 < len(observed) <= sum(p.has_point3D() for p in original.points2D)
+    for observation in observed:
+        xyz = model.points3D[observation.point3D_id].xyz
+        in_photo = np.asarray(camera.img_from_cam(original.cam_from_world() * xyz))
+        in_twin = np.asarray(twin_camera.img_from_cam(twin.cam_from_world() * xyz))
+        assert np.allclose(in_twin, (in_photo - centre) / 0.8 + centre, atol=1e-6)
+        assert 0 <= observation.xy[0] < camera.width and 0 <= observation.xy[1] < camera.height
+    with Image.open(source / "images" / photo) as image, Image.open(copy / "images" / name) as zoomed:
+        assert zoomed.size == image.size
+        pixels = np.asarray(image.convert("RGB"), dtype=np.float64)
+        w, h = image.size
+        central = pixels[int(h * 0.1) : int(np.ceil(h * 0.9)), int(w * 0.1) : int(np.ceil(w * 0.9))]
+        assert np.abs(np.asarray(zoomed, dtype=np.float64).mean((0, 1)) - central.mean((0, 1))).max() < 4.0
+    with pytest.raises(InputError, match="not a photo"):
+        add_twin(source, tmp_path / "other", "missing.png")
+
+    photos = [PhotoKeypoints(n, np.zeros((5, 2)), np.zeros((5, 3))) for n in ("a", "b", "twin_a")]
+    runner = TwinSceneRunner.__new__(TwinSceneRunner)
+    runner.initialiser = type("Stub", (), {"keypoints": lambda self, subject: photos})()
+    runner.reference_unusable = None
+    runner.options = BenchOptions(settings=RegistrationSettings(keypoint_weight=1.0))
+    subject = type("Subject", (), {"photos": [type("P", (), {"name": n})() for n in ("a", "b", "twin_a")]})()
+    assert [k.name for k in runner.keypoints(subject, runner.options.settings)] == ["a", "twin_a"]

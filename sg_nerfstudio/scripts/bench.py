@@ -78,7 +78,8 @@ class BenchArgs:
     """Show COLMAP's INFO log while initialising (default: its warnings and errors only)."""
 
 
-def run(args: BenchArgs, console: Console) -> Path:
+def run(args: BenchArgs, console: Console, runner: type[SceneRunner] = SceneRunner) -> Path:
+    """The benchmark of `args`; `runner` runs each scene's registrations (bench/twins.py passes one that keeps fewer anchors)."""
     started = time.perf_counter()
     set_threads(args.threads)
     set_colmap_verbosity(args.verbose)
@@ -98,12 +99,12 @@ def run(args: BenchArgs, console: Console) -> Path:
             step_task = progress.add_task(f"{scene.name}: reference", total=args.train_steps)
             config, train_seconds[scene.name] = train_reference(scene, args.output, args.train_steps, lambda s: progress.update(step_task, completed=s + 1))
             progress.update(step_task, completed=args.train_steps)
-            runner = SceneRunner(scene, config, options, args.output)
+            scene_runner = runner(scene, config, options, args.output)
             for meta in scene.metas:
                 loaded = load_meta_image(meta.directory)
-                for spec in runner.pending(meta, len(loaded.photos)):
+                for spec in scene_runner.pending(meta, len(loaded.photos)):
                     progress.reset(step_task, total=total_steps(options.alternatives.get(spec.mode, options.settings)), description=f"{scene.name}/{meta.name}: {spec.name}")
-                    record = runner.run(meta, loaded, spec, lambda s, total: progress.update(step_task, completed=s + 1, total=total))
+                    record = scene_runner.run(meta, loaded, spec, lambda s, total: progress.update(step_task, completed=s + 1, total=total))
                     console.print(describe(record))
             progress.remove_task(step_task)
             progress.advance(scene_task)

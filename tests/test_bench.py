@@ -61,7 +61,7 @@ def test_suite_layout_is_read_back(suite):
     assert [[m.name for m in s.metas] for s in scenes] == [["front"], ["front", "rear"]]
 
 
-def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path, capsys):
+def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path, capsys, monkeypatch):
     output = tmp_path / "results"
     args = [str(suite), "--output", str(output), "--config", str(preset), "--train-steps", "20",
             "--initialisers", "colmap", "perturbed", "--ablations", "none", "--noise-levels", "2", "8", "--sizes", "3",
@@ -109,6 +109,28 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
     assert len(anchored) == 3 and all(r["anchored_photos"] <= 1 for r in anchored)
     markers = sorted((one / "references").glob("*/reference.json"))
     assert markers and all(m.read_text() == (output / "references" / m.parent.name / "reference.json").read_text() for m in markers)  # reused
+
+    # --twin-anchors builds the twin copies (the tiny photos give no SIFT anchors: the photo to copy comes from a stub)
+    # and registers those; what a twin copy holds is test_a_twin_copy_has_its_photos_pose_zoomed_camera_and_observations.
+    from sg_nerfstudio.bench import twins
+    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+
+    class FirstPhotoMatches:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def keypoints(self, meta):
+            return [PhotoKeypoints(photo.name, np.zeros((9 - i, 2)), np.zeros((9 - i, 3))) for i, photo in enumerate(meta.photos)]
+
+    monkeypatch.setattr(twins, "Initialiser", FirstPhotoMatches)
+    twin_output, copies = tmp_path / "twin-results", tmp_path / "twins"
+    shutil.copytree(output / "references", twin_output / "references")
+    assert bench_main([str(suite), "--output", str(twin_output), "--twin-anchors", str(copies), "--config", str(preset), "--train-steps", "20",
+                       "--initialisers", "perturbed"]) == 0, capsys.readouterr().err
+    twinned = [json.loads(p.read_text()) for p in sorted((twin_output / "runs").glob("*/*/*.json"))]
+    originals = {(r["scene"], r["meta"]): r["photos"] for r in records if r["run"] == "perturbed"}
+    assert len(twinned) == 3 and all(r["photos"] == originals[(r["scene"], r["meta"])] + 1 for r in twinned)
+    assert len(list(copies.glob("*/meta/*/twin.json"))) == 3 and not list(copies.glob("*/meta/*.partial"))
 
     # Resumption: finished runs and references are reused; a missing record is run again.
     stamps = {p: p.stat().st_mtime_ns for p in [*(output / "runs").glob("*/*/*.json"), *(output / "references").glob("*/reference.json")]}

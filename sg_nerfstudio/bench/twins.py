@@ -12,8 +12,7 @@ dense objective, `optimize.scale_the_anchors_leave_free`, and the verdict probes
 2. The benchmark then runs as `sg-bench` does, with the keypoint anchors of A and its twin only (`TwinSceneRunner`):
    the other photos still enter the dense objective, but give no anchors.
 
-    python -m sg_nerfstudio.bench.twins real-scenes --twins real-twins --output twin-results --initialisers \\
-        --noise-levels 5 15 30 --noise-samples 2
+    sg-bench real-scenes --twin-anchors real-twins --output twin-results --initialisers --noise-levels 5 15 30 --noise-samples 2
 
 Figures: docs/measurements.md, "Anchors from one spot" and "The camera adjustment, re-tested".
 """
@@ -22,14 +21,11 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import pycolmap
-import tyro
 from PIL import Image
 from rich.console import Console
 
@@ -39,14 +35,14 @@ from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, ReferenceSource
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
-from sg_nerfstudio.scripts.bench import BenchArgs, run
-from sg_nerfstudio.scripts.cli import cli_main
 
+ZOOM = 0.8
+"""The twin's crop: this fraction of its photo's width and height, about the centre."""
 TWIN_PREFIX = "twin_"
 """A twin's file name is this prefix and its photo's."""
 
 
-def add_twin(meta: Path, output: Path, photo: str, zoom: float = 0.8) -> str:
+def add_twin(meta: Path, output: Path, photo: str, zoom: float = ZOOM) -> str:
     """Copy the meta-image directory `meta` (images/ + sparse/0 + gt_transform.json) to `output`, adding the twin of
     `photo` (module docstring); returns the twin's name. The twin's camera is a copy of the photo's with every focal
     length divided by `zoom` (principal point and distortion unchanged: the crop is about the image centre, and the
@@ -86,25 +82,28 @@ def add_twin(meta: Path, output: Path, photo: str, zoom: float = 0.8) -> str:
     return name
 
 
-def build_twins(benchmark: Path, output: Path, zoom: float = 0.8, console: Optional[Console] = None) -> None:
-    """Twin copies of every scene of `benchmark` under `output` (module docstring, step 1); meta-images already copied
-    (their twin.json exists) are kept, so an interrupted build continues."""
+def build_twins(benchmark: Path, output: Path, zoom: float = ZOOM, console: Optional[Console] = None) -> None:
+    """Twin copies of every scene of `benchmark` under `output` (module docstring, step 1). Each meta-image's copy is
+    written beside its place and renamed into it when complete, so copies already made (an interrupted build) are kept
+    and nothing half-written is left; a scene gets its directory only with its first copy."""
     for scene in read_benchmark(benchmark):
         target = output / scene.name
-        target.mkdir(parents=True, exist_ok=True)
-        if not (target / "reference").exists():
-            (target / "reference").symlink_to(scene.reference.resolve(), target_is_directory=True)
         initialiser = Initialiser(ReferenceSource(scene.reference / scene.reference_model, scene.reference / "images"), InitialiserSettings())
         for meta in scene.metas:
             copy = target / "meta" / meta.directory.name
-            if (copy / "twin.json").is_file():
+            if copy.is_dir():
                 continue
-            shutil.rmtree(copy, ignore_errors=True)
             counts = {k.name: len(k.points2D) for k in initialiser.keypoints(load_meta_image(meta.directory))}
             if not counts or max(counts.values()) == 0:
                 raise InputError(f"No photo of {meta.directory} has keypoint correspondences with its reference; expected one to copy as a twin.")
             photo = max(counts, key=counts.get)
-            add_twin(meta.directory, copy, photo, zoom)
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            if not (target / "reference").exists():
+                (target / "reference").symlink_to(scene.reference.resolve(), target_is_directory=True)
+            partial = copy.with_name(copy.name + ".partial")
+            shutil.rmtree(partial, ignore_errors=True)
+            add_twin(meta.directory, partial, photo, zoom)
+            partial.rename(copy)
             if console:
                 console.print(f"{scene.name}/{meta.directory.name}: twin of {photo} ({counts[photo]} correspondences)")
 
@@ -116,29 +115,3 @@ class TwinSceneRunner(SceneRunner):
         twins = {photo.name for photo in subject.photos if photo.name.startswith(TWIN_PREFIX)}
         kept = twins | {name[len(TWIN_PREFIX):] for name in twins}
         return [k for k in super().keypoints(subject, settings) if k.name in kept]
-
-
-@dataclass
-class TwinArgs(BenchArgs):
-    """Build twin copies of a benchmark (if not built yet) and run sg-bench on them with the anchors of each twin pair."""
-
-    twins: Path = Path("twins")
-    """Where the twin copies are written (and read back when the command runs again)."""
-    zoom: float = 0.8
-    """The twin's crop: this fraction of its photo's width and height, about the centre."""
-
-
-def main(argv: Optional[list[str]] = None) -> int:
-    args = tyro.cli(TwinArgs, args=list(sys.argv[1:] if argv is None else argv), prog="python -m sg_nerfstudio.bench.twins")
-
-    def body() -> int:
-        console = Console()
-        build_twins(args.benchmark, args.twins, args.zoom, console)
-        run(BenchArgs(**{**{k: getattr(args, k) for k in BenchArgs.__dataclass_fields__}, "benchmark": args.twins}), console, TwinSceneRunner)
-        return 0
-
-    return cli_main(body)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -27,6 +27,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
+from sg_nerfstudio.bench.twins import TwinSceneRunner, build_twins
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.registration.optimize import total_steps
@@ -71,6 +72,10 @@ class BenchArgs:
     """Keep the keypoint anchors of only this many photos per meta-image, those with the most correspondences (0: all):
     registration where few photos match the reference (night, occluders). Starts are unchanged. Use its own --output:
     records made with another value would be reused."""
+    twin_anchors: Optional[Path] = None
+    """Anchors from one spot (bench/twins.py): write twin copies of the benchmark here (each meta-image with a zoomed
+    twin of its best-matching photo, from the same camera centre; reused when present) and register those, with the
+    keypoint anchors of each twin and its photo only. Use its own --output."""
     seed: int = 0
     threads: Optional[int] = None
     """CPU threads of torch and numba (default: the cores this process may use)."""
@@ -78,12 +83,15 @@ class BenchArgs:
     """Show COLMAP's INFO log while initialising (default: its warnings and errors only)."""
 
 
-def run(args: BenchArgs, console: Console, runner: type[SceneRunner] = SceneRunner) -> Path:
-    """The benchmark of `args`; `runner` runs each scene's registrations (bench/twins.py passes one that keeps fewer anchors)."""
+def run(args: BenchArgs, console: Console) -> Path:
     started = time.perf_counter()
     set_threads(args.threads)
     set_colmap_verbosity(args.verbose)
-    scenes = read_benchmark(args.benchmark)
+    runner = SceneRunner
+    if args.twin_anchors is not None:  # the twin copies stand in for the benchmark
+        build_twins(args.benchmark, args.twin_anchors, console=console)
+        runner = TwinSceneRunner
+    scenes = read_benchmark(args.benchmark if args.twin_anchors is None else args.twin_anchors)
     options = BenchOptions(
         settings=load_preset(args.config), train_steps=args.train_steps, initialisers=args.initialisers,
         ablations=args.ablations, noise_levels=args.noise_levels, sizes=args.sizes, size_samples=args.size_samples, seed=args.seed,

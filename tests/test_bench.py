@@ -277,7 +277,8 @@ def test_anchored_photos_keeps_the_photos_with_the_most_correspondences():
 
 def test_a_twin_copy_has_its_photos_pose_zoomed_camera_and_observations(suite, tmp_path):
     """bench/twins.py: the twin of a photo sits at the photo's pose with its focal lengths / zoom, observes the photo's
-    points inside the crop where that camera projects them, and carries the photo's central crop; the ground truth is
+    points inside the crop where that camera projects them (its principal point off the centre), and carries the
+    photo's central crop; the ground truth is
     copied unchanged. A twin run keeps the anchors of the twin and its photo only."""
     import pycolmap
     from PIL import Image
@@ -289,8 +290,13 @@ def test_a_twin_copy_has_its_photos_pose_zoomed_camera_and_observations(suite, t
     from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
     from sg_nerfstudio.registration.settings import RegistrationSettings
 
-    source = read_benchmark(suite)[0].metas[0].directory
+    source = tmp_path / "source"  # a meta-image of the suite with the photo's principal point moved off the centre
+    shutil.copytree(read_benchmark(suite)[0].metas[0].directory, source)
     photo = load_meta_image(source).photos[1].name
+    given = pycolmap.Reconstruction(source / "sparse" / "0")
+    off_centre = given.cameras[given.find_image_with_name(photo).camera_id]
+    off_centre.params = np.array(off_centre.params) + np.isin(np.arange(len(off_centre.params)), off_centre.principal_point_idxs()) * 2.5
+    given.write(source / "sparse" / "0")
     copy = tmp_path / "twin"
     name = add_twin(source, copy, photo, zoom=0.8)
     assert (copy / "gt_transform.json").read_bytes() == (source / "gt_transform.json").read_bytes()

@@ -44,10 +44,11 @@ TWIN_PREFIX = "twin_"
 
 def add_twin(meta: Path, output: Path, photo: str, zoom: float = ZOOM) -> str:
     """Copy the meta-image directory `meta` (images/ + sparse/0 + gt_transform.json) to `output`, adding the twin of
-    `photo` (module docstring); returns the twin's name. The twin's camera is a copy of the photo's with every focal
-    length divided by `zoom` (principal point and distortion unchanged: the crop is about the image centre, and the
-    distortion acts on the same normalised coordinates); each of the photo's observations with a 3-D point that stays
-    inside the crop is an observation of the twin at (xy - centre) / zoom + centre."""
+    `photo` (module docstring); returns the twin's name. The crop is about the image centre, so every pixel xy of the
+    photo is (xy - centre) / zoom + centre in the twin: the twin's camera is a copy of the photo's with every focal
+    length divided by `zoom` and its principal point moved by that map (distortion unchanged: it acts on the same
+    normalised coordinates), and each of the photo's observations with a 3-D point that stays inside the crop is an
+    observation of the twin there."""
     shutil.copytree(meta, output)
     model = pycolmap.Reconstruction(output / "sparse" / "0")
     original = model.find_image_with_name(photo)
@@ -56,11 +57,13 @@ def add_twin(meta: Path, output: Path, photo: str, zoom: float = ZOOM) -> str:
     camera = model.cameras[original.camera_id]
     twin_camera = pycolmap.Camera(camera.todict())
     twin_camera.camera_id = max(model.cameras) + 1
+    centre = np.array([camera.width, camera.height], dtype=np.float64) / 2
     params = np.array(camera.params)
     params[list(camera.focal_length_idxs())] /= zoom
+    principal = list(camera.principal_point_idxs())
+    params[principal] = (params[principal] - centre) / zoom + centre
     twin_camera.params = params
     model.add_camera_with_trivial_rig(twin_camera)
-    centre = np.array([camera.width, camera.height], dtype=np.float64) / 2
     points2D, observed = [], []
     for observation in original.points2D:
         xy = (np.asarray(observation.xy) - centre) / zoom + centre

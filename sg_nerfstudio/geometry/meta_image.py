@@ -174,8 +174,9 @@ class MetaImage:
         rotation and translation change the images independently."""
         targets = []
         for photo in self.photos:
-            if np.isfinite(photo.median_depth):
-                targets.append(photo.centre + photo.median_depth * photo.cam_from_world[2, :3])
+            depth = photo.median_depth
+            if np.isfinite(depth):
+                targets.append(photo.centre + depth * photo.cam_from_world[2, :3])
         return transform.apply(np.mean(targets, axis=0)) if targets else self.centroid_under(transform)
 
 

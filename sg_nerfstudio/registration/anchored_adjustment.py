@@ -17,7 +17,7 @@ long and the registration's ΔT at 0.057; this adjustment brings them within 0.3
 
 The result is a `CameraFit` like the prior fit's: the Sim(3) that maps the meta-image's own cameras onto the adjusted
 ones (`geometry.alignment.align_cameras`, the rule of the benchmarks' ground truth) and, relative to it, each photo's
-moved pose, focal scale and k1. Every photo moves, with anchors or not (its own observations carry it). Two cases are
+moved pose, focal scale and k1. Every photo moves, with anchors or not (its own observations carry it). Three cases are
 left to the prior fit (`Anchoring.fit_cameras` decides): cameras of models with more distortion terms than k1 (RADIAL,
 OPENCV, fisheye, ...), as COLMAP's adjuster frees all of a camera's extra parameters or none; multi-camera rigs; and anchors that leave
 the scale free (one photo's, or photos taken from one spot), about which the adjusted model's scale is a direction the

@@ -148,7 +148,8 @@ class RegistrationSettings:
     orientation together as far as its own tracks allow; every photo moves, with anchors or not. On the 46 SIFT starts
     of the twelve real-photo benchmark scenes (fast-cpu) mean ΔR 0.129 -> 0.105° and ΔT 0.011 -> 0.010, the worst
     meta-image's ΔT 0.057 -> 0.021 (docs/measurements.md "The camera fit as a bundle adjustment"). Where the anchors
-    leave the scale free (one photo's) or a camera model has more distortion terms than k1, `priors` runs instead."""
+    leave the scale free (one photo's, or photos from one spot), a camera model has more distortion terms than k1, or
+    a rig has several cameras, `priors` runs instead (`Anchoring.fit_cameras`)."""
     photo_pose_prior_scale: float = 1.0
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
     camera_fit_iterations: int = 100

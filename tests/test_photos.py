@@ -21,6 +21,7 @@ from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.photos.collection import prepare_photos
 from sg_nerfstudio.photos.scene import RealSceneError, RealSceneSettings, build_real_scene, split_photos
+from sg_nerfstudio.photos.sfm import SfmSettingsError
 from sg_nerfstudio.photos.strecha import CameraFileError, read_strecha_camera
 from sg_nerfstudio.scripts.make_scene import main as make_scene_main
 from sg_nerfstudio.scripts.meta_images import main as meta_images_main
@@ -92,7 +93,7 @@ def test_prepare_photos_applies_exif_grey_and_cap(tmp_path):
     assert Image.open(tmp_path / "out" / "grey.png").mode == "RGB"
 
 
-@pytest.mark.parametrize("case", ["missing", "empty", "two", "truncated", "no-model"])
+@pytest.mark.parametrize("case", ["missing", "empty", "two", "truncated", "no-model", "camera-model"])
 def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     folder = tmp_path / "photos"
     if case != "missing":
@@ -106,14 +107,15 @@ def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     if case == "two":
         for seed in range(2):
             noise_photo(folder / f"noise{seed}.png", seed)
-    if case == "no-model":
+    if case in ("no-model", "camera-model"):
         for seed in range(3):
             noise_photo(folder / f"noise{seed}.png", seed)
     output = tmp_path / "metas"
-    assert meta_images_main([str(folder), "--output", str(output), "--threads", "1"]) == 1
+    model = ["--camera-model", "OPENCV_TYPO"] if case == "camera-model" else []
+    assert meta_images_main([str(folder), "--output", str(output), "--threads", "1", *model]) == 1
     err = capfd.readouterr().err  # file-descriptor level: COLMAP's glog writes there, not through sys.stderr
     expected = {"missing": "does not exist", "empty": "holds no JPEG or PNG", "two": f"{folder} holds 2 JPEG or PNG photo(s); expected at least 3", "truncated": "a.jpg could not be decoded",
-                "no-model": "formed no model"}[case]
+                "no-model": "formed no model", "camera-model": "'OPENCV_TYPO' is not a COLMAP camera model; expected one of SIMPLE_PINHOLE"}[case]
     assert expected in err and "Traceback" not in err
     assert "Failed to create any sparse model" not in err and "No images with matches" not in err  # the mapper's own lines
     assert not output.exists() and not list(tmp_path.glob(".metas*"))
@@ -252,6 +254,8 @@ def test_real_scene_bad_inputs(photos, tmp_path, capsys):
     cameras.mkdir()
     assert make_scene_main(["--from-photos", str(photos), "--cameras", str(cameras), "--output", str(output)]) == 1
     assert "has no" in capsys.readouterr().err and not output.exists()
+    with pytest.raises(SfmSettingsError, match="--scene.meta-camera-model 'opencv' is not a COLMAP camera model"):
+        build_real_scene(photos, output, RealSceneSettings(meta_camera_model="opencv"))
     settings = RealSceneSettings(reference_size=320, photo_size=320, min_reference_points=10**6)
     with pytest.raises(RealSceneError, match="to initialise the splat"):
         build_real_scene(photos, output, settings)

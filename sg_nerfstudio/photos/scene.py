@@ -58,7 +58,7 @@ from sg_nerfstudio.initialisers.pipeline import silent_progress
 from sg_nerfstudio.initialisers.reference_cloud import PairingSettings, ReferenceSource, build_reference_cloud
 from sg_nerfstudio.photos.collection import capped_size, list_photos, prepare_photos
 from sg_nerfstudio.photos.meta_images import write_model
-from sg_nerfstudio.photos.sfm import SfmSettings, reconstruct
+from sg_nerfstudio.photos.sfm import SfmSettings, check_camera_model, reconstruct
 from sg_nerfstudio.photos.strecha import read_strecha_cameras
 from sg_nerfstudio.synthetic.appearance import apply_camera_effects, draw_occluders, random_look
 
@@ -92,6 +92,10 @@ class RealSceneSettings:
     """Range of the image share an occluder hides."""
     jpeg_quality: tuple[int, int] = (60, 95)
     """Range of the meta photos' JPEG quality."""
+    meta_camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model of the meta-images' own SfM (one camera per photo): SIMPLE_RADIAL as `sg-meta-images` by
+    default, OPENCV as nerfstudio's `ns-process-data` writes, RADIAL, PINHOLE, ... The solution the ground truth and the
+    reference come from is not affected."""
     min_reference_points: int = 100
     """Fewer triangulated reference points than this cannot initialise a splat: refused."""
     seed: int = 0
@@ -124,6 +128,7 @@ def build_real_scene(
     started = time.perf_counter()
     if settings.meta_size < 3:
         raise RealSceneError(f"meta_size must be at least 3 photos (a meta-image is an SfM model), got {settings.meta_size}.")
+    check_camera_model(settings.meta_camera_model, "--scene.meta-camera-model")
     if settings.reference_every < 2:
         raise RealSceneError(f"reference_every must be at least 2 (1 would leave no photo for meta-images), got {settings.reference_every}.")
     sources = list_photos(photos)
@@ -339,7 +344,7 @@ def write_meta(directory: Path, work: Path, photos: list[SolvedPhoto], settings:
         image.save(styled / photo.name, format="JPEG", quality=quality)
     names = [p.name for p in photos]
     record = {"name": directory.name, "photos": names, "looks": looks, "written": False}
-    result = reconstruct(styled, names, work / "sfm", SfmSettings(min_model_size=3, seed=settings.seed, threads=SFM_THREADS))
+    result = reconstruct(styled, names, work / "sfm", SfmSettings(camera_model=settings.meta_camera_model, min_model_size=3, seed=settings.seed, threads=SFM_THREADS))
     if not result.models:
         record["why"] = "; ".join(f"{n}: {r}" for n, r in result.unregistered())
         return record

@@ -44,7 +44,8 @@ class MetaImagesArgs:
     retrieval_neighbours: int = 20
     """Above the limit: photos each photo is matched with."""
     camera_model: str = "SIMPLE_RADIAL"
-    """COLMAP camera model, one camera per photo."""
+    """COLMAP camera model, one camera per photo. Models of a few photos under RADIAL or OPENCV (more lens terms than
+    k1) formed less often and were broken more often than under SIMPLE_RADIAL (photos/sfm.py, SfmSettings)."""
     threads: Optional[int] = None
     """pycolmap threads (default: the cores this process may use)."""
     seed: int = 0

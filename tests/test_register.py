@@ -490,7 +490,16 @@ def test_verdict_rule_follows_its_evidence():
     # anchors that a 2% scale change barely moves (one photo's, or photos from one spot) do not fix the scale
     assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.01})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.05, "keypoint_error_px": 0.0})).label == "uncertain"
-    assert decide(Evidence(**sound | held | {"keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS})).label == "uncertain"
+    off = decide(Evidence(**sound | held | {"keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS}))
+    assert off.label == "uncertain" and any("anchors reproject 0.50 cells off" in reason for reason in off.reasons)
+    # anchors that do not hold also overrule a sharp minimum: verified matches disagree with the result
+    sharp_but_off = decide(Evidence(**sound | {"keypoint_photos": 2, "keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS}))
+    assert sharp_but_off.label == "uncertain" and "anchors reproject" in sharp_but_off.reasons[0]
+    # a photo at a maximum of its own loss contradicts the result; one that reads flat (occluded) does not
+    rises = [0.1] * 8 + [0.0, 0.0]
+    assert decide(Evidence(**sound | {"per_photo_rise": rises})).label == "registered"
+    contradicted = decide(Evidence(**sound | {"per_photo_rise": rises[:-1] + [-2 * verdict.PHOTO_RISE]}))
+    assert contradicted.label == "uncertain" and contradicted.reasons[0].startswith("1 photo(s) contradict the result")
     assert decide(Evidence(**sound | held | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"sharpness": 0.5 * verdict.FAILED_SHARPNESS})).label == "failed"
     scale_seen = {"scale_rise": 2 * verdict.REGISTERED_SHARPNESS, "scale_probe": 0.04}

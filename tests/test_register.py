@@ -496,10 +496,14 @@ def test_verdict_rule_follows_its_evidence():
     sharp_but_off = decide(Evidence(**sound | {"keypoint_photos": 2, "keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS}))
     assert sharp_but_off.label == "uncertain" and "anchors reproject" in sharp_but_off.reasons[0]
     # a photo at a maximum of its own loss contradicts the result; one that reads flat (occluded) does not
-    rises = [0.1] * 8 + [0.0, 0.0]
-    assert decide(Evidence(**sound | {"per_photo_rise": rises})).label == "registered"
-    contradicted = decide(Evidence(**sound | {"per_photo_rise": rises[:-1] + [-2 * verdict.PHOTO_RISE]}))
+    rises, covered = [0.1] * 8 + [0.0, 0.0], [0.8] * 10
+    assert decide(Evidence(**sound | {"per_photo_rise": rises, "per_photo_coverage": covered})).label == "registered"
+    falling = rises[:-1] + [-2 * verdict.PHOTO_RISE]
+    contradicted = decide(Evidence(**sound | {"per_photo_rise": falling, "per_photo_coverage": covered}))
     assert contradicted.label == "uncertain" and contradicted.reasons[0].startswith("1 photo(s) contradict the result")
+    # a photo the model barely covers says little about the pose, falling or not
+    barely = covered[:-1] + [0.5 * verdict.PHOTO_COVERAGE]
+    assert decide(Evidence(**sound | {"per_photo_rise": falling, "per_photo_coverage": barely})).label == "registered"
     assert decide(Evidence(**sound | held | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"sharpness": 0.5 * verdict.FAILED_SHARPNESS})).label == "failed"
     scale_seen = {"scale_rise": 2 * verdict.REGISTERED_SHARPNESS, "scale_probe": 0.04}

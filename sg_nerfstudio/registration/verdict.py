@@ -46,8 +46,9 @@ reproject within `ANCHORS_HOLD_CELLS`; `uncertain` otherwise.
 
 Two of these read a contradiction rather than a lack of support (docs/measurements.md "A broken meta-image and the
 verdict"):
-- *a photo contradicts the result* when its own loss falls at the median probe by more than `PHOTO_RISE`: the result
-  sits near a maximum of that photo's loss, where an occluded or unrelated photo reads flat;
+- *a photo contradicts the result* when the model covers it (`PHOTO_COVERAGE`, as for agreeing) and its own loss falls
+  at the median probe by more than `PHOTO_RISE`: the result sits near a maximum of that photo's loss, where an occluded
+  or unrelated photo reads flat;
 - *the anchors do not hold*: verified matches that reproject more than `ANCHORS_HOLD_CELLS` off (median) disagree with
   the result, whatever the dense objective says.
 Over the 838 results of the real-photo and synthetic benchmarks run with them, no accurate result had either: the
@@ -237,7 +238,9 @@ def decide(evidence: Evidence) -> Verdict:
         reasons.append(f"shallow minimum: {sharp}")
     if evidence.flattest_rise < DESCENT_TOLERANCE:
         reasons.append(f"not converged: a probe is {100 * -evidence.flattest_rise:.1f}% lower")
-    contradicting = [rise for rise in evidence.per_photo_rise if rise < -PHOTO_RISE]
+    contradicting = [
+        rise for rise, cover in zip(evidence.per_photo_rise, evidence.per_photo_coverage) if rise < -PHOTO_RISE and cover >= PHOTO_COVERAGE
+    ]
     if contradicting:
         reasons.append(f"{len(contradicting)} photo(s) contradict the result: their own loss falls {100 * -min(contradicting):.1f}% one cell away")
     if evidence.keypoint_error_cells is not None and evidence.keypoint_error_cells > ANCHORS_HOLD_CELLS:

@@ -491,7 +491,7 @@ def test_verdict_rule_follows_its_evidence():
     assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.01})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.05, "keypoint_error_px": 0.0})).label == "uncertain"
     off = decide(Evidence(**sound | held | {"keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS}))
-    assert off.label == "uncertain" and any("anchors reproject 0.50 cells off" in reason for reason in off.reasons)
+    assert off.label == "uncertain" and any("anchors reproject 0.500 cells off" in reason for reason in off.reasons)
     # anchors that do not hold also overrule a sharp minimum: verified matches disagree with the result
     sharp_but_off = decide(Evidence(**sound | {"keypoint_photos": 2, "keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS}))
     assert sharp_but_off.label == "uncertain" and "anchors reproject" in sharp_but_off.reasons[0]

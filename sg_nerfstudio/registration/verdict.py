@@ -244,7 +244,7 @@ def decide(evidence: Evidence) -> Verdict:
     if contradicting:
         reasons.append(f"{len(contradicting)} photo(s) contradict the result: their own loss falls {100 * -min(contradicting):.1f}% one cell away")
     if evidence.keypoint_error_cells is not None and evidence.keypoint_error_cells > ANCHORS_HOLD_CELLS:
-        reasons.append(f"the keypoint anchors reproject {evidence.keypoint_error_cells:.2f} cells off (median; more than {ANCHORS_HOLD_CELLS})")
+        reasons.append(f"the keypoint anchors reproject {evidence.keypoint_error_cells:.3f} cells off (median; more than {ANCHORS_HOLD_CELLS})")
     if evidence.scale_rise is not None and evidence.scale_rise < FAILED_SHARPNESS:
         change = f"{100 * evidence.scale_rise:+.1f}% at {100 * evidence.scale_probe:.0f}% more or less scale"
         reasons.append(f"scale not fixed: the anchors leave it free, the other photos' objective changes {change}")

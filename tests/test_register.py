@@ -490,6 +490,8 @@ def test_verdict_rule_follows_its_evidence():
     # anchors that a 2% scale change barely moves (one photo's, or photos from one spot) do not fix the scale
     assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.01})).label == "uncertain"
     assert decide(Evidence(**sound | held | {"keypoint_scale_motion_px": 0.05, "keypoint_error_px": 0.0})).label == "uncertain"
+    refused = decide(Evidence(**sound | {"camera_fit_refused": "a photo turned 3.9° (beyond 2°)"}))
+    assert refused.label == "uncertain" and refused.reasons[0].startswith("the camera fit was refused (a photo turned 3.9°")
     off = decide(Evidence(**sound | held | {"keypoint_error_cells": 2 * verdict.ANCHORS_HOLD_CELLS}))
     assert off.label == "uncertain" and any("anchors reproject 0.500 cells off" in reason for reason in off.reasons)
     # anchors that do not hold also overrule a sharp minimum: verified matches disagree with the result
@@ -770,6 +772,8 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     far_off = Anchoring(with_wrong_focal_lengths(meta, 1.5), anchors, Sim3.identity(), 1.0)  # beyond MAX_FOCAL_CHANGE
     dropped = far_off.fit_cameras(prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=True, pose_prior_scale=None)
     assert dropped.transform is prealigned and dropped.focal_scales == {}
+    assert fit.refused == "" and dropped.refused.startswith("a focal length x") and dropped.refused.endswith("(beyond 20%)")
+    assert float(dropped.refused.split("x")[1].split()[0]) < 1 / 1.2  # the fitted scale, toward the true 1 / 1.5
 
     settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0,
                                     keypoint_prealign_steps=1000, prealigned_steps=2, refine_focal=True)
@@ -783,6 +787,10 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
         source = next(photo for photo in wrong.photos if photo.name == image.name)
         assert aligned.cameras[image.camera_id].mean_focal_length() == pytest.approx(source.camera.mean_focal_length() * result.focal_scales[image.name])
     assert register(reference, wrong, ground_truth, replace(settings, refine_focal=False), keypoints=anchors).focal_scales == {}
+    # a refused fit is verdict evidence: the meta-image's own cameras disagree with the anchors
+    doubted = register(reference, with_wrong_focal_lengths(meta, 1.5), ground_truth, settings, keypoints=anchors)
+    assert doubted.focal_scales == {} and doubted.verdict.evidence.camera_fit_refused.startswith("a focal length")
+    assert doubted.verdict.label != "registered" and any(reason.startswith("the camera fit was refused") for reason in doubted.verdict.reasons)
 
 
 def test_distortion_refinement_recovers_a_wrong_sfm_radial_coefficient(reference, meta, ground_truth, tmp_path):
@@ -971,7 +979,7 @@ def test_a_focal_change_widens_the_centre_shift_a_photo_may_take():
     """A photo whose SfM focal length was some percent wrong stood as many percent too near or far from a facade: the
     plausibility limit lets the camera fit move it by its depth times the focal change on top of MAX_POSE_CHANGE_DEG;
     the same shift without a focal change, or a turn beyond the limit, is refused."""
-    from sg_nerfstudio.registration.keypoints import MAX_POSE_CHANGE_DEG, FreeCameras, plausible
+    from sg_nerfstudio.registration.keypoints import MAX_POSE_CHANGE_DEG, FreeCameras, implausibility
 
     depth, sigma = 10.0, np.radians(0.5)
     pose_sigma = torch.tensor([[sigma] * 3 + [depth * sigma] * 3], dtype=torch.float64)
@@ -982,12 +990,12 @@ def test_a_focal_change_widens_the_centre_shift_a_photo_may_take():
     def cameras(focal_scale, corrections):
         return FreeCameras(torch.tensor([np.log(focal_scale)], dtype=torch.float64), torch.tensor([0.05], dtype=torch.float64), corrections, pose_sigma)
 
-    assert plausible(cameras(0.94, corrections), camera_of)
-    assert not plausible(cameras(1.0, corrections), camera_of)
-    assert not plausible(FreeCameras(pose_corrections=corrections, pose_sigma=pose_sigma), camera_of)
+    assert implausibility(cameras(0.94, corrections), camera_of) == ""
+    assert implausibility(cameras(1.0, corrections), camera_of).startswith("a photo moved beyond its depth times 2°")
+    assert implausibility(FreeCameras(pose_corrections=corrections, pose_sigma=pose_sigma), camera_of)
     turned = corrections.clone()
     turned[0, 1] = np.radians(MAX_POSE_CHANGE_DEG) * 1.1
-    assert not plausible(cameras(0.94, turned), camera_of)
+    assert implausibility(cameras(0.94, turned), camera_of) == "a photo turned 2.2° (beyond 2°)"
 
 
 def test_camera_fit_ends_where_the_priors_last_digits_do_not_matter(reference, meta, ground_truth):

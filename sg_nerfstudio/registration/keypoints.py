@@ -66,7 +66,7 @@ MAX_K1_CHANGE = 0.2
 fit is dropped whole. Real lenses' k1 lies within about +-0.3; the 3-photo models' SfM put it 0.03-0.18 off."""
 MAX_POSE_CHANGE_DEG = 2.0
 """A photo's fitted pose correction (`refine_photo_poses`) beyond this rotation, or beyond a centre shift that moves its
-scene as much (its median point depth times the angle) plus the depth change its focal change implies (`plausible`), is
+scene as much (its median point depth times the angle) plus the depth change its focal change implies (`implausibility`), is
 not believed: the camera fit is dropped whole."""
 FIT_KERNEL_FRACTION = 1 / 160
 """Scale of the Cauchy kernel while photos' poses are fitted (`refine_photo_poses`), as a fraction of the photo's long
@@ -224,7 +224,7 @@ class KeypointTerm:
         relative standard deviation of its focal length} (the focal lengths are fitted too), the shift along the optical
         axis also gets the depth change that focal uncertainty allows, depth x sqrt(angle^2 + sigma_f^2): an SfM that
         got a focal length some percent long put that photo as many percent nearer its scene, and moving it back is what
-        correcting the focal length asks (`plausible` allows the same). 0 (the photo is not moved) for photos not named;
+        correcting the focal length asks (`implausibility` allows the same). 0 (the photo is not moved) for photos not named;
         None when no photo is moved."""
         depths = self.depths.clone()
         known = torch.isfinite(depths) & (depths > 0)
@@ -321,6 +321,9 @@ class CameraFit:
     focal_scales: dict[str, float] = field(default_factory=dict)
     poses: dict[str, np.ndarray] = field(default_factory=dict)
     radial_k1: dict[int, float] = field(default_factory=dict)
+    refused: str = ""
+    """Why the fitted cameras were not kept (`beyond_limits`: the anchors asked more of the meta-image's own cameras
+    than an SfM error of a few photos plausibly is), "" when they were or nothing was fitted. Verdict evidence."""
 
 
 class Anchoring:
@@ -407,8 +410,9 @@ class Anchoring:
         if fitted is None:
             return CameraFit(start)
         moved, free = fitted
-        if not plausible(free, term.camera_of):
-            return CameraFit(start)  # the Sim(3) was fitted with those cameras: neither is kept
+        refused = implausibility(free, term.camera_of)
+        if refused:
+            return CameraFit(start, refused=refused)  # the Sim(3) was fitted with those cameras: neither is kept
         fit = CameraFit(moved)
         if free.log_focal is not None:
             change = {camera_id: float(torch.exp(value)) for camera_id, value, own in zip(term.camera_ids, free.log_focal, focal_free[1]) if own}
@@ -434,7 +438,7 @@ class Anchoring:
 
     def adjusted_cameras(self, start: Sim3, focal: bool, distortion: bool) -> CameraFit:
         """`fit_cameras` by `anchored_adjustment.adjust_with_anchors` from `start` (numpy Sim3, meta -> dataparser); `start`
-        alone when the adjuster fails or moves a camera beyond what `plausible` allows the prior fit (a focal change
+        alone when the adjuster fails or moves a camera beyond what `implausibility` allows the prior fit (a focal change
         beyond MAX_FOCAL_CHANGE, a k1 change beyond MAX_K1_CHANGE, a turn beyond MAX_POSE_CHANGE_DEG or a centre shift
         beyond its depth times that angle plus the meta-image's largest focal change). The largest, not the photo's own:
         the adjusted model is compared with the given one after the Sim(3) that best maps one onto the other, which
@@ -445,14 +449,14 @@ class Anchoring:
             return CameraFit(start)
         transform, poses, focal_change, radial_k1 = adjusted
         cameras = self.meta.reconstruction.cameras
-        if any(abs(np.log(change)) > np.log1p(MAX_FOCAL_CHANGE) for change in focal_change.values()):
-            return CameraFit(start)
-        if any(abs(k1 - cameras[c].params[radial_k1_index(cameras[c])]) > MAX_K1_CHANGE for c, k1 in radial_k1.items()):
-            return CameraFit(start)
         angles, shifts, depths = pose_changes(self.meta, poses)
         depth_change = max((abs(np.log(change)) for change in focal_change.values()), default=0.0)
-        if (angles > MAX_POSE_CHANGE_DEG).any() or (shifts > depths * (np.radians(MAX_POSE_CHANGE_DEG) + depth_change)).any():
-            return CameraFit(start)
+        refused = beyond_limits(
+            list(focal_change.values()), [k1 - cameras[c].params[radial_k1_index(cameras[c])] for c, k1 in radial_k1.items()],
+            list(angles), bool((shifts > depths * (np.radians(MAX_POSE_CHANGE_DEG) + depth_change)).any()),
+        )
+        if refused:
+            return CameraFit(start, refused=refused)
         focal_scales = {p.name: p.focal_scale * focal_change[int(p.camera.camera_id)] for p in self.meta.photos} if focal_change else {}
         return CameraFit(transform, focal_scales, poses, radial_k1)
 
@@ -584,18 +588,36 @@ def fit_jointly(
     return (Sim3.update(delta, centre_t) @ base).numpy(), free
 
 
-def plausible(free: FreeCameras, camera_of: Tensor) -> bool:
-    """Whether fitted cameras are within MAX_FOCAL_CHANGE (focal scales), MAX_K1_CHANGE (radial coefficients) and
-    MAX_POSE_CHANGE_DEG (pose corrections; `camera_of` [P'] each photo's index into the cameras). A photo's centre
-    shift is compared with its median point depth times that angle plus the depth change its camera's focal change
-    implies (depth x |log focal scale|): a photo whose SfM focal length was wrong by some percent stood as many percent
-    nearer or farther from a facade in the SfM, and the fit must move it by that much to keep its image (Strecha
+def beyond_limits(focal_scales: list[float], k1_changes: list[float], turns_deg: list[float], shifted_too_far: bool) -> str:
+    """The first of a camera fit's changes that is not believed, as a phrase for the verdict ("" when all are within the
+    limits): a focal scale outside [1 / (1 + MAX_FOCAL_CHANGE), 1 + MAX_FOCAL_CHANGE], a k1 change beyond MAX_K1_CHANGE,
+    a photo turned beyond MAX_POSE_CHANGE_DEG, or a centre shifted beyond the allowance the caller measured
+    (`shifted_too_far`)."""
+    for scale in focal_scales:
+        if abs(np.log(scale)) > np.log1p(MAX_FOCAL_CHANGE):
+            return f"a focal length x{scale:.2f} (beyond {MAX_FOCAL_CHANGE:.0%})"
+    for change in k1_changes:
+        if abs(change) > MAX_K1_CHANGE:
+            return f"a k1 change of {change:+.2f} (beyond {MAX_K1_CHANGE})"
+    for turn in turns_deg:
+        if turn > MAX_POSE_CHANGE_DEG:
+            return f"a photo turned {turn:.1f}° (beyond {MAX_POSE_CHANGE_DEG:.0f}°)"
+    if shifted_too_far:
+        return f"a photo moved beyond its depth times {MAX_POSE_CHANGE_DEG:.0f}° and its focal change"
+    return ""
+
+
+def implausibility(free: FreeCameras, camera_of: Tensor) -> str:
+    """`beyond_limits` of fitted cameras ("" when they are plausible): their focal scales, k1 changes and pose
+    corrections (`camera_of` [P'] each photo's index into the cameras). A photo's centre
+    shift is compared with its median point depth times MAX_POSE_CHANGE_DEG plus the depth change its camera's focal
+    change implies (depth x |log focal scale|): a photo whose SfM focal length was wrong by some percent stood as many
+    percent nearer or farther from a facade in the SfM, and the fit must move it by that much to keep its image (Strecha
     fountain 0005, SfM focal length 11% long: the fit's 6% shorter focal length and 6% shift were refused with the
     angle alone)."""
-    if free.log_focal is not None and bool((free.log_focal.abs() > np.log1p(MAX_FOCAL_CHANGE)).any()):
-        return False
-    if free.k1_delta is not None and bool((free.k1_delta.abs() > MAX_K1_CHANGE).any()):
-        return False
+    focal = torch.exp(free.log_focal).tolist() if free.log_focal is not None else []
+    k1 = free.k1_delta.tolist() if free.k1_delta is not None else []
+    turns, shifted = [], False
     if free.pose_corrections is not None:
         limit = np.radians(MAX_POSE_CHANGE_DEG)
         turn, shift = free.pose_corrections[:, :3].norm(dim=1), free.pose_corrections[:, 3:].norm(dim=1)
@@ -603,7 +625,6 @@ def plausible(free: FreeCameras, camera_of: Tensor) -> bool:
         # depth = the centre's sigma across the optical axis (index 3: depth x angle) / rotation sigma
         # (`KeypointTerm.pose_sigma`), so shift > depth x allowance reads as below;
         # photos not moved have sigma 0 and shift 0: 0 > 0 is False
-        allowance = limit + depth_change
-        if bool((turn > limit).any() or (shift * free.pose_sigma[:, 0] > allowance * free.pose_sigma[:, 3]).any()):
-            return False
-    return True
+        turns = torch.rad2deg(turn).tolist()
+        shifted = bool((shift * free.pose_sigma[:, 0] > (limit + depth_change) * free.pose_sigma[:, 3]).any())
+    return beyond_limits(focal, k1, turns, shifted)

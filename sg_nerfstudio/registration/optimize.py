@@ -239,6 +239,7 @@ def register(
         main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth,
         scale_search["photos"] if scale_search else None,
     )
+    evidence.camera_fit_refused = fit.refused or None
     final_anchors = anchor.term(main.losses.objective.teacher.grid_size, 1.0)
     if final_anchors is not None:
         evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos

@@ -35,6 +35,13 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   (flat, as the 12 probes' median must not be) the scale rests on nothing the descriptor resolves, or a probe descends:
   uncertain. The anchors hold the other six degrees of freedom, so a shallow rise above it is accepted as a shallow
   minimum is with anchors that hold (real twin pairs: 2.9-3.5% at ±5.5% on fountain3 0005-0008, accurate).
+- `camera_fit_refused` (with keypoint anchors and a camera fit, registration/keypoints.py): why the fit of the photos'
+  focal lengths, k1 and poses to the anchors was not kept (`keypoints.beyond_limits`), None when it was. The anchors then
+  asked a photo to turn more than 2°, or a focal length to change more than 20%: more than an SfM of a few photos errs
+  by, so the meta-image's own cameras disagree with the reference. A single Sim(3) of such a model is in doubt:
+  `uncertain`. On this machine's benchmarks every such refusal came from a meta-image whose own SfM was poor (13 of 13:
+  OPENCV models of 3-5 photos and one broken model), and none of 82 fits on SIMPLE_RADIAL and RADIAL ones (docs/
+  measurements.md "A refused camera fit as verdict evidence").
 - `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
   for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
 
@@ -42,7 +49,7 @@ Rule (thresholds calibrated on generated scenes, see README "Verdict"): `failed`
 `FAILED_AGREEING` of the photos agree or the objective is flat (sharpness below `FAILED_SHARPNESS`);
 `registered` when at least `REGISTERED_AGREEING` agree, sharpness is at least `REGISTERED_SHARPNESS` (or the
 anchors hold, above), no probe descends, no photo contradicts the result and, where there are anchors, they
-reproject within `ANCHORS_HOLD_CELLS`; `uncertain` otherwise.
+reproject within `ANCHORS_HOLD_CELLS` and no camera fit was refused; `uncertain` otherwise.
 
 Two of these read a contradiction rather than a lack of support (docs/measurements.md "A broken meta-image and the
 verdict"):
@@ -112,6 +119,7 @@ class Evidence:
     depth_points: int = 0
     scale_rise: Optional[float] = None
     scale_probe: Optional[float] = None
+    camera_fit_refused: Optional[str] = None
 
     @property
     def agreeing_fraction(self) -> float:
@@ -243,6 +251,8 @@ def decide(evidence: Evidence) -> Verdict:
     ]
     if contradicting:
         reasons.append(f"{len(contradicting)} photo(s) contradict the result: their own loss falls {100 * -min(contradicting):.1f}% one cell away")
+    if evidence.camera_fit_refused:
+        reasons.append(f"the camera fit was refused ({evidence.camera_fit_refused}): the meta-image's own cameras disagree with the anchors")
     if evidence.keypoint_error_cells is not None and evidence.keypoint_error_cells > ANCHORS_HOLD_CELLS:
         reasons.append(f"the keypoint anchors reproject {evidence.keypoint_error_cells:.3f} cells off (median; more than {ANCHORS_HOLD_CELLS})")
     if evidence.scale_rise is not None and evidence.scale_rise < FAILED_SHARPNESS:

@@ -611,6 +611,8 @@ def test_fail_on_and_merged_leave_out_a_failed_verdict(reference_config, tiny_sc
         assert json.loads((out / "front" / "transform.json").read_text())["verdict"] in {"registered", "uncertain", "failed"}
         record = json.loads((out / "merged" / "merge.json").read_text())
         assert [part["source"] for part in record["merged"]] == ["front"]
+        front = json.loads((out / "front" / "transform.json").read_text())
+        assert record["merged"][0]["verdict"] == front["verdict"] and record["merged"][0]["verdict_reasons"] == front["verdict_reasons"]
         assert record["not_merged"] == [{"source": "front_moved", "reason": "verdict failed: forced by the test"}]
         assert "failed" in printed
 

@@ -6,7 +6,7 @@ reconstruction. `ns-register-meta` given several meta-images writes it to `<outp
     cameras.bin, images.bin, points3D.bin, rigs.bin, frames.bin
                  images named "<meta-image>/<photo name>" (and "reference/<name>" with --merge-reference),
                  cameras, images and points renumbered, tracks kept
-    merge.json   which meta-images were merged with their transforms, which were not and why
+    merge.json   which meta-images were merged with their transforms and verdicts, which were not and why
 
 pycolmap does the I/O; only the renumbering is ours (pycolmap has no merge of reconstructions that do
 not share images).
@@ -15,7 +15,7 @@ not share images).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -35,6 +35,8 @@ class MergePart:
     prefix: str
     reconstruction: pycolmap.Reconstruction
     transform: Optional[Sim3] = None  # meta -> reference world that put it there (None: the reference)
+    verdict: Optional[str] = None  # the registration's verdict label (None: the reference)
+    verdict_reasons: list[str] = field(default_factory=list)
 
 
 def aligned_reconstruction(
@@ -132,7 +134,8 @@ def write_merged(target: Path, parts: list[MergePart], not_merged: dict[str, str
         "convention": "every camera and point in the reference model's world frame; image names '<source>/<name>'",
         "merged": [
             {"source": part.prefix, "images": part.reconstruction.num_reg_images(), "points3D": part.reconstruction.num_points3D(),
-             "transform": None if part.transform is None else np.asarray(part.transform).tolist()}
+             "transform": None if part.transform is None else np.asarray(part.transform).tolist(),
+             "verdict": part.verdict, "verdict_reasons": part.verdict_reasons}
             for part in parts
         ],
         "not_merged": [{"source": name, "reason": reason} for name, reason in not_merged.items()],

@@ -299,7 +299,8 @@ def read_reference_part(job: RegistrationJob) -> MergePart:
 
 def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optional[MergePart], overwrite: bool, console: Console) -> None:
     """merged/: every registered meta-image whose verdict is not `failed` (and optionally the reference) in one
-    COLMAP model; merge.json lists the others with the reason."""
+    COLMAP model; merge.json gives each merged one's verdict (an `uncertain` one is merged, and says so) and lists
+    the others with the reason."""
     parts = [reference_part] if reference_part is not None else []
     not_merged = {}
     for outcome in outcomes:
@@ -308,7 +309,8 @@ def write_merge(target: Path, outcomes: list[MetaOutcome], reference_part: Optio
         elif outcome.result.verdict.label == "failed":
             not_merged[outcome.meta.name] = "verdict failed: " + "; ".join(outcome.result.verdict.reasons)
         else:
-            parts.append(MergePart(outcome.meta.name, outcome.aligned, outcome.result.transform))
+            verdict = outcome.result.verdict
+            parts.append(MergePart(outcome.meta.name, outcome.aligned, outcome.result.transform, verdict.label, verdict.reasons))
     if not any(part.transform is not None for part in parts):
         console.print(f"[yellow]No meta-image was registered with a verdict other than failed, so {target} is not written.[/yellow]")
         return

@@ -51,14 +51,15 @@ Rule (thresholds calibrated on generated scenes, see README "Verdict"): `failed`
 anchors hold, above), no probe descends, no photo contradicts the result and, where there are anchors, they
 reproject within `ANCHORS_HOLD_CELLS` and no camera fit was refused; `uncertain` otherwise.
 
-Two of these read a contradiction rather than a lack of support (docs/measurements.md "A broken meta-image and the
-verdict"):
+Three of these read a contradiction rather than a lack of support (docs/measurements.md "A broken meta-image and the
+verdict", "A refused camera fit as verdict evidence"):
 - *a photo contradicts the result* when the model covers it (`PHOTO_COVERAGE`, as for agreeing) and its own loss falls
   at the median probe by more than `PHOTO_RISE`: the result sits near a maximum of that photo's loss, where an occluded
   or unrelated photo reads flat;
 - *the anchors do not hold*: verified matches that reproject more than `ANCHORS_HOLD_CELLS` off (median) disagree with
-  the result, whatever the dense objective says.
-Over the 838 results of the real-photo and synthetic benchmarks run with them, no accurate result had either: the
+  the result, whatever the dense objective says;
+- *the camera fit was refused* (`camera_fit_refused` above): the meta-image's own cameras disagree with the anchors.
+For the first two: over the 838 results of the real-photo and synthetic benchmarks run with them, no accurate result had either: the
 lowest photo rise was -0.4% and the largest anchor error 0.17 cells. A 4-photo SfM model of Sceaux that no similarity
 fits (its truth's cameras 27-43° apart from it) had been called `registered` with two photos at -8.7% and -13.7% and
 its anchors at 0.36 cells. Frames: the transform is meta -> dataparser, as in `PhotoLosses`.

@@ -513,6 +513,44 @@ def test_verdict_rule_follows_its_evidence():
     assert decide(Evidence(**sound | scale_seen | {"scale_rise": 0.5 * verdict.REGISTERED_SHARPNESS})).label == "registered"
     flat_scale = decide(Evidence(**sound | scale_seen | {"scale_rise": 0.5 * verdict.FAILED_SHARPNESS}))
     assert flat_scale.label == "uncertain" and flat_scale.reasons[0].startswith("scale not fixed")
+    # another minimum as deep as the result (one window along a repetitive facade) makes it uncertain; a deeper one too
+    assert decide(Evidence(**sound | {"other_minimum_rise": 10 * verdict.OTHER_MINIMUM_MARGIN, "other_minimum_cells": 8.0})).label == "registered"
+    twin = decide(Evidence(**sound | {"other_minimum_rise": 0.5 * verdict.OTHER_MINIMUM_MARGIN, "other_minimum_cells": 8.0}))
+    assert twin.label == "uncertain" and twin.reasons[0].startswith("another minimum 8 cells away is only 2.5% higher")
+    deeper = decide(Evidence(**sound | {"other_minimum_rise": -0.1, "other_minimum_cells": 8.0}))
+    assert deeper.label == "uncertain" and "10.0% lower" in deeper.reasons[0]
+
+
+def test_the_look_for_another_minimum_finds_a_repetition_and_nothing_where_there_is_none(meta):
+    """On a known objective of the translation alone: wells every `period` along the photos' mean image x axis (a
+    facade of identical windows) give another minimum `period` away, at the depth given; one well gives none."""
+    from sg_nerfstudio.registration import other_minimum
+
+    result = Sim3.identity()
+    x_axis = other_minimum.image_axes(meta, result)[0]
+    probe, period = 0.01, 0.075  # the repetition: 7.5 translation probes
+
+    def wells(depth_of_others: float, periodic: bool):
+        def objective(transform: Sim3) -> float:
+            offset = np.asarray(transform.translation)
+            along, across = float(offset @ x_axis), float(np.linalg.norm(offset - (offset @ x_axis) * x_axis))
+            well = round(along / period) if periodic else 0
+            floor = 1.0 if well == 0 else 1.0 + depth_of_others
+            return floor + 50.0 * ((along - well * period) ** 2 + across**2) ** 0.5
+
+        def refine(start: Sim3) -> Sim3:  # the optimiser: to the bottom of the well it starts in
+            along = float(np.asarray(start.translation) @ x_axis)
+            well = round(along / period) if periodic else 0
+            return Sim3.from_parts(1.0, np.eye(3), well * period * x_axis)
+
+        return objective, refine
+
+    for depth in (0.003, 0.5):
+        objective, refine = wells(depth, periodic=True)
+        found = other_minimum.look_for_other_minimum(objective, refine, meta, result, objective(result), np.radians(1.8), probe)
+        assert found is not None and found.rise == pytest.approx(depth) and found.distance_cells == pytest.approx(period / probe)
+    objective, refine = wells(0.0, periodic=False)
+    assert other_minimum.look_for_other_minimum(objective, refine, meta, result, objective(result), np.radians(1.8), probe) is None
 
 
 def test_depth_ratios_follow_the_scale_of_points_on_a_known_surface():
@@ -560,10 +598,18 @@ def facing_the_other_side(ground_truth: Sim3) -> Sim3:
     return Sim3.from_parts(1.0, np.diag([-1.0, -1.0, 1.0]), np.zeros(3)) @ ground_truth
 
 
-def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(reference, meta, ground_truth):
+def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(reference, meta, ground_truth, monkeypatch):
+    """Also: without anchors the verdict looks for another minimum (registration/other_minimum.py), and the truth of
+    the tiny scene (windows with unique detail) has none as deep."""
+    from sg_nerfstudio.registration import other_minimum
+
+    looks, look = [], other_minimum.look_for_other_minimum
+    monkeypatch.setattr(other_minimum, "look_for_other_minimum", lambda *args, **kwargs: looks.append(look(*args, **kwargs)) or looks[-1])
     settings = RegistrationSettings(**{**FAST, "steps": 20, "objective": "teacher-on-render"})
     wrong = register(reference, meta, facing_the_other_side(ground_truth), settings)
+    looks.clear()
     right = register(reference, meta, ground_truth, settings)
+    assert len(looks) == 1 and (looks[0] is None or looks[0].rise >= other_minimum.MARGIN)
     assert pose_errors(meta.poses, wrong.transform, ground_truth).outlier()
     assert wrong.verdict.label != "registered", wrong.verdict
     assert right.verdict.label == "registered", right.verdict
@@ -659,11 +705,16 @@ def test_keypoint_term_vanishes_at_the_truth_and_grows_away_from_it(reference, m
     assert only_first.photos == 1 and only_first.median_error_cells(truth_ns) < 1e-4
 
 
-def test_keypoint_anchors_hold_the_answer_where_the_dense_minimum_is_off(reference, meta, ground_truth):
+def test_keypoint_anchors_hold_the_answer_where_the_dense_minimum_is_off(reference, meta, ground_truth, monkeypatch):
     """The real-photo failure in miniature: the photos' targets are the model rendered 1.5° away from the truth
     (a dense objective whose minimum is not the answer), the keypoints (20% of them wrong matches) are exact.
     From a 5° start the dense objective alone ends near its own minimum, more than 1° from the truth; with the
-    anchors the registration ends within 0.4° of the truth."""
+    anchors the registration ends within 0.4° of the truth, and the verdict does not look for another minimum of
+    the dense objective (the anchors fix the pose; registration/other_minimum.py)."""
+    from sg_nerfstudio.registration import other_minimum
+
+    looks = []
+    monkeypatch.setattr(other_minimum, "look_for_other_minimum", lambda *args, **kwargs: looks.append(args))
     settings = RegistrationSettings(**{**FAST, "steps": 60, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render", keypoint_weight=3.0, update_centre="look-at")
     biased = perturbed_start(meta, ground_truth, 5, 1.5, 0.03, 0.02)
     photos = rendered_targets(reference, meta, prepare_photos(reference, meta, settings), biased, settings)
@@ -672,8 +723,10 @@ def test_keypoint_anchors_hold_the_answer_where_the_dense_minimum_is_off(referen
     poses = meta.poses
     dense_only = register(reference, meta, start, replace(settings, keypoint_weight=0.0), photos=photos, keypoints=anchors)
     assert pose_errors(poses, dense_only.transform, ground_truth).rotation_deg > 1.0
+    looked = len(looks)
     anchored = register(reference, meta, start, settings, photos=photos, keypoints=anchors)
     assert pose_errors(poses, anchored.transform, ground_truth).rotation_deg < 0.4
+    assert len(looks) == looked
 
 
 def test_cli_keypoint_anchors_off_when_the_reference_gives_no_sift_cloud(reference_config, tiny_scene, tmp_path, capsys):

@@ -119,6 +119,22 @@ def test_occluders_are_textured_like_real_ones():
     assert interior.sum() > 0.2 * interior.size and textured.mean() > 0.3
 
 
+@pytest.mark.parametrize("unique_detail, repeats", [(0.0, True), (1.0, False)])
+def test_without_unique_detail_a_facade_repeats_window_to_window(unique_detail, repeats):
+    """`unique_detail` 0 (no decals, no weathering) makes a soft facade periodic with its window columns: the case of
+    a registration one window away. At the default no window looks like its neighbour."""
+    from sg_nerfstudio.synthetic.building import BuildingConfig, landmark_surfaces
+
+    config = BuildingConfig(unique_detail=unique_detail)
+    rear = next(s for s in landmark_surfaces(config) if s.name == "body_rear")
+    column = config.width / max(config.window_cols - 2, 2)  # the rear facade's window pitch (`landmark_surfaces`)
+    u, v = np.meshgrid(np.linspace(0.5, config.width - column - 0.5, 120), np.linspace(0.5, config.height - 0.5, 40))
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    difference = np.abs(rear.pattern(uv, 0.3) - rear.pattern(uv + [column, 0.0], 0.3)).mean()
+    assert (difference < 1e-9) == repeats
+    assert repeats or difference > 0.05
+
+
 def digest(directory: Path) -> str:
     h = hashlib.sha256()
     for path in sorted(p for p in directory.rglob("*") if p.is_file() and p.name != "scene.json"):
@@ -142,6 +158,8 @@ def test_bad_settings_fail_with_one_sentence_and_leave_nothing(tmp_path, capsys)
         generate_scene(replace(PRESETS["tiny"], meta_images=("top:5",)), tmp_path / "x")
     with pytest.raises(SceneGenerationError, match="one meta-image"):
         generate_scene(replace(PRESETS["tiny"], meta_images=("front:5", "front:6")), tmp_path / "x")
+    with pytest.raises(SceneGenerationError, match="unique_detail must be 0 or more"):
+        generate_scene(replace(PRESETS["tiny"], building=replace(PRESETS["tiny"].building, unique_detail=float("nan"))), tmp_path / "x")
     assert list(tmp_path.iterdir()) == []
 
     existing = tmp_path / "existing"

@@ -32,7 +32,8 @@ from sg_nerfstudio.registration.objectives import (
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
-from sg_nerfstudio.registration.verdict import Verdict, decide, gather_evidence
+from sg_nerfstudio.registration import other_minimum
+from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, gather_evidence
 
 Array = np.ndarray
 
@@ -244,6 +245,8 @@ def register(
     if final_anchors is not None:
         evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos
         evidence.keypoint_scale_motion_px, evidence.keypoint_error_px = final_anchors.scale_motion_px(current)
+    if not uses_anchors(settings, bool(anchor)) and decide(evidence).label != "failed":
+        record_other_minimum(evidence, main, meta, current, trimmed, settings)
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
@@ -274,6 +277,22 @@ def register(
         photo_poses={photo.name: (ns_to_world @ current).move_camera(photo.cam_from_world) for photo in meta.photos if photo.name in fit.poses},
         scale_search=scale_search,
     )
+
+
+def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, result: Sim3, result_value: float, settings: RegistrationSettings) -> None:
+    """Fill `evidence.other_minimum_rise` / `other_minimum_cells` by `other_minimum.look_for_other_minimum` around
+    `result` (meta -> dataparser; `result_value` its trimmed main-stage objective): the scan and the comparison on the
+    main stage's objective, the descent by `optimise_stage` on it (a stage of its own, off the registration's history)."""
+    rule = TrimmingRule.of(settings)
+    descent = Stage("other-minimum", main.losses, other_minimum.REFINE_STEPS, other_minimum.REFINE_LR, other_minimum.REFINE_LR / 6)
+    found = other_minimum.look_for_other_minimum(
+        objective=lambda transform: rule.trimmed_mean(objective_at(main.losses, transform)),
+        refine=lambda start: optimise_stage(descent, meta, start, settings, History([p.name for p in main.losses.photos]), 0, None)[0],
+        meta=meta, result=result, result_value=result_value,
+        rotation_probe=np.radians(evidence.probe_rotation_deg), translation_probe=evidence.probe_translation,
+    )
+    if found is not None:
+        evidence.other_minimum_rise, evidence.other_minimum_cells = found.rise, found.distance_cells
 
 
 def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, grid_size: int) -> CameraFit:

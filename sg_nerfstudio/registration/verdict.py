@@ -42,6 +42,10 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   `uncertain`. On this machine's benchmarks every such refusal came from a meta-image whose own SfM was poor (13 of 13:
   OPENCV models of 3-5 photos and one broken model), and none of 82 fits on SIMPLE_RADIAL and RADIAL ones (docs/
   measurements.md "A refused camera fit as verdict evidence").
+- `other_minimum_rise`, `other_minimum_cells` (registrations without keypoint anchors, not `failed` on the rest of the
+  evidence; registration/other_minimum.py): the look beyond the probes for a second minimum, e.g. one window along a
+  facade of identical windows, where the probes above see a sharp minimum agreed by every photo. Its relative rise over
+  the result and its distance in probes; None when the look found none (or did not run).
 - `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
   for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
 
@@ -49,7 +53,8 @@ Rule (thresholds calibrated on generated scenes, see README "Verdict"): `failed`
 `FAILED_AGREEING` of the photos agree or the objective is flat (sharpness below `FAILED_SHARPNESS`);
 `registered` when at least `REGISTERED_AGREEING` agree, sharpness is at least `REGISTERED_SHARPNESS` (or the
 anchors hold, above), no probe descends, no photo contradicts the result and, where there are anchors, they
-reproject within `ANCHORS_HOLD_CELLS` and no camera fit was refused; `uncertain` otherwise.
+reproject within `ANCHORS_HOLD_CELLS` and no camera fit was refused, and no other minimum lies within
+`OTHER_MINIMUM_MARGIN` of the result (or below it); `uncertain` otherwise.
 
 Three of these read a contradiction rather than a lack of support (docs/measurements.md "A broken meta-image and the
 verdict", "A refused camera fit as verdict evidence"):
@@ -80,6 +85,7 @@ from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.depth_agreement import DepthAgreement
 from sg_nerfstudio.registration.keypoints import anchors_fix_scale
+from sg_nerfstudio.registration.other_minimum import MARGIN as OTHER_MINIMUM_MARGIN
 from sg_nerfstudio.registration.robust import TrimmingRule
 
 Array = np.ndarray
@@ -121,6 +127,8 @@ class Evidence:
     scale_rise: Optional[float] = None
     scale_probe: Optional[float] = None
     camera_fit_refused: Optional[str] = None
+    other_minimum_rise: Optional[float] = None
+    other_minimum_cells: Optional[float] = None
 
     @property
     def agreeing_fraction(self) -> float:
@@ -256,6 +264,10 @@ def decide(evidence: Evidence) -> Verdict:
         reasons.append(f"the camera fit was refused ({evidence.camera_fit_refused}): the meta-image's own cameras disagree with the anchors")
     if evidence.keypoint_error_cells is not None and evidence.keypoint_error_cells > ANCHORS_HOLD_CELLS:
         reasons.append(f"the keypoint anchors reproject {evidence.keypoint_error_cells:.3f} cells off (median; more than {ANCHORS_HOLD_CELLS})")
+    if evidence.other_minimum_rise is not None and evidence.other_minimum_rise < OTHER_MINIMUM_MARGIN:
+        rise = evidence.other_minimum_rise
+        depth = f"only {100 * rise:.1f}% higher" if rise >= 0 else f"{100 * -rise:.1f}% lower"
+        reasons.append(f"another minimum {evidence.other_minimum_cells:.0f} cells away is {depth} (a repetition the descriptor cannot tell apart)")
     if evidence.scale_rise is not None and evidence.scale_rise < FAILED_SHARPNESS:
         change = f"{100 * evidence.scale_rise:+.1f}% at {100 * evidence.scale_probe:.0f}% more or less scale"
         reasons.append(f"scale not fixed: the anchors leave it free, the other photos' objective changes {change}")

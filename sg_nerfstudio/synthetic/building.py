@@ -16,7 +16,7 @@ the splats are the realistic test load of the rasterizer benchmark.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
 
 import numpy as np
@@ -54,6 +54,11 @@ class BuildingConfig:
     COLMAP point clouds (the images are ray-cast from the surfaces, see raycast.py)."""
     palette_seed: int = 0
     """Seed of the colour palette and pattern jitter."""
+    unique_detail: float = 1.0
+    """Scales what makes one place of the landmark look unlike another: the rate of one-off decals (`decals`: 1 =
+    FACADE_DECAL_RATE of the facade cells, GROUND_DECAL_RATE of the ground's) and the amplitude of the weathering
+    (`weathering`). 0 leaves rows of identical windows, told apart only by the tone of single stone blocks where a
+    photo is sharp enough to see them: a repetitive facade, where a registration may find a minimum one window away."""
 
 
 @dataclass
@@ -134,21 +139,25 @@ WEATHERING_OCTAVES = ((4.0, 0.16), (2.0, 0.12), (1.0, 0.1), (0.5, 0.08))
 uneven tone that make real stonework unique from place to place (no two windows look the same)."""
 
 
-def weathering(uv: Array, softness: float, seed: int) -> Array:
-    """[n] brightness factor around 1 from `WEATHERING_OCTAVES`; octaves finer than `softness` are left out
-    (a soft, pseudo-synthetic render keeps the large stains only)."""
+def weathering(uv: Array, softness: float, seed: int, strength: float = 1.0) -> Array:
+    """[n] brightness factor around 1 from `WEATHERING_OCTAVES`, amplitudes times `strength`; octaves finer than
+    `softness` are left out (a soft, pseudo-synthetic render keeps the large stains only)."""
     factor = np.ones(len(uv))
     for octave, (cell, amplitude) in enumerate(WEATHERING_OCTAVES):
         if cell >= softness:
-            factor += amplitude * (2 * _value_noise(uv, cell, seed * 31 + octave) - 1)
+            factor += strength * amplitude * (2 * _value_noise(uv, cell, seed * 31 + octave) - 1)
     return factor
 
 
 DECAL_CELL = 1.6
 """Metres: the decals of a surface sit on a grid of this pitch, at most one per cell."""
+FACADE_DECAL_RATE = 0.35
+"""Fraction of a facade's decal cells that hold a decal (at `BuildingConfig.unique_detail` 1)."""
+GROUND_DECAL_RATE = 0.15
+"""Fraction of the ground's decal cells that hold a decal (at `BuildingConfig.unique_detail` 1)."""
 
 
-def decals(uv: Array, color: Array, softness: float, seed: int, rate: float = 0.35) -> Array:
+def decals(uv: Array, color: Array, softness: float, seed: int, rate: float = FACADE_DECAL_RATE) -> Array:
     """Scatter non-repeating details over a pattern: plaques, signs, lamps, plants, patches of repair.
 
     Repeated windows and pilasters give SIFT nothing to tell apart; real facades and squares are full of
@@ -193,6 +202,8 @@ class FacadeStyle:
     rose_window: bool = False
     window_shape: Literal["arched", "tall", "square"] = "arched"
     floors: list[float] = field(default_factory=list)
+    unique_detail: float = 1.0
+    """`BuildingConfig.unique_detail` for this facade."""
 
 
 def facade_pattern(width: float, height: float, style: FacadeStyle, seed: int) -> Pattern:
@@ -237,13 +248,14 @@ def facade_pattern(width: float, height: float, style: FacadeStyle, seed: int) -
             weight = _smoothstep_inside(r - radius, softness)
             color = color * (1 - weight[:, None]) + rose * weight[:, None]
             color = _mix(color, style.trim, _smoothstep_inside(np.abs(r - radius) - 0.25, softness))
-        color = decals(uv, color * weathering(uv, softness, seed)[:, None], softness, seed)
+        aged = color * weathering(uv, softness, seed, style.unique_detail)[:, None]
+        color = decals(uv, aged, softness, seed, rate=FACADE_DECAL_RATE * style.unique_detail)
         return np.clip(color, 0.0, 1.0)
 
     return pattern
 
 
-def ground_pattern(seed: int, body_half_extent: Array) -> Pattern:
+def ground_pattern(seed: int, body_half_extent: Array, unique_detail: float = 1.0) -> Pattern:
     """Paved square with tiles of varying tone, a path to the front door, grass further out."""
 
     def pattern(uv: Array, softness: float) -> Array:
@@ -261,7 +273,8 @@ def ground_pattern(seed: int, body_half_extent: Array) -> Pattern:
         outer = 1.6 * float(np.max(body_half_extent)) + 6.0
         weight = 1.0 - _smoothstep_inside(radius - outer, max(softness, 0.5))
         color = paving * (1 - weight[:, None]) + grass * weight[:, None]
-        color = decals(uv, color * weathering(uv, softness, seed + 3)[:, None], softness, seed + 3, rate=0.15)
+        aged = color * weathering(uv, softness, seed + 3, unique_detail)[:, None]
+        color = decals(uv, aged, softness, seed + 3, rate=GROUND_DECAL_RATE * unique_detail)
         return np.clip(color, 0.0, 1.0)
 
     return pattern
@@ -416,8 +429,10 @@ def landmark_surfaces(config: BuildingConfig) -> list[Surface]:
         "left": FacadeStyle(stone, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), floors=floors),
         "right": FacadeStyle(stone * 1.03, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), window_shape="square", floors=floors),
     }
+    styles = {side: replace(style, unique_detail=config.unique_detail) for side, style in styles.items()}
     surfaces = box_walls("body", (0.0, 0.0), (w, d), 0.0, h, styles, config.palette_seed)
-    surfaces.append(ground_disc(config.ground_radius, ground_pattern(config.palette_seed, np.array([w / 2, d / 2])), config.ground_density))
+    ground = ground_pattern(config.palette_seed, np.array([w / 2, d / 2]), config.unique_detail)
+    surfaces.append(ground_disc(config.ground_radius, ground, config.ground_density))
     roof_color, roof_stripe = np.array([0.45, 0.22, 0.16]), np.array([0.32, 0.15, 0.11])
     surfaces += _roof(config, roof_color, roof_stripe, stone, trim)
     surfaces += _towers(config, stone, trim, glass, roof_color)
@@ -439,7 +454,7 @@ def _roof(config: BuildingConfig, roof_color: Array, roof_stripe: Array, stone: 
     tiles = plain_pattern(roof_color, 0.9, roof_stripe, 1, seed)
     left = planar_patch("roof_left", [-w / 2, d / 2, h], [0, -1.0, 0], [w / 2 / slope, 0, rise / slope], (d, slope), tiles)
     right = planar_patch("roof_right", [w / 2, -d / 2, h], [0, 1.0, 0], [-w / 2 / slope, 0, rise / slope], (d, slope), tiles)
-    gable_style = FacadeStyle(stone, trim, np.array([0.12, 0.16, 0.24]), rows=1, cols=1, window_shape="tall")
+    gable_style = FacadeStyle(stone, trim, np.array([0.12, 0.16, 0.24]), rows=1, cols=1, window_shape="tall", unique_detail=config.unique_detail)
 
     def triangle(uv: Array) -> Array:
         return uv[:, 1] <= rise * (1 - np.abs(uv[:, 0] - w / 2) / (w / 2))
@@ -457,7 +472,7 @@ def _towers(config: BuildingConfig, stone: Array, trim: Array, glass: Array, roo
     for index in range(min(config.towers, 2)):
         cx = (-1 if index == 0 else 1) * (w / 2 - side / 2)
         cy = -d / 2 - side / 2 + 0.3 * side  # protrudes from the front
-        style = FacadeStyle(stone * 1.02, trim, glass, rows=4, cols=1, window_shape="tall", floors=[0.25, 0.5, 0.75])
+        style = FacadeStyle(stone * 1.02, trim, glass, rows=4, cols=1, window_shape="tall", floors=[0.25, 0.5, 0.75], unique_detail=config.unique_detail)
         surfaces += box_walls(f"tower{index}", (cx, cy), (side, side), 0.0, tower_h, {k: style for k in ("front", "rear", "left", "right")}, config.palette_seed + 20 + index)
         spire_h = 0.6 * side
         slant = np.hypot(side / 2, spire_h)

@@ -158,6 +158,8 @@ def validate(config: SceneConfig) -> None:
         raise SceneGenerationError("Image sizes must be at least 16 pixels on each side.")
     if config.building.n_gaussians < 100:
         raise SceneGenerationError(f"The landmark needs at least 100 Gaussians, got {config.building.n_gaussians}.")
+    if not config.building.unique_detail >= 0.0:  # also refuses NaN
+        raise SceneGenerationError(f"unique_detail must be 0 or more, got {config.building.unique_detail}.")
     if not 0.0 <= config.occluder_rate <= 1.0:
         raise SceneGenerationError(f"occluder_rate must be in [0, 1], got {config.occluder_rate}.")
 

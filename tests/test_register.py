@@ -545,12 +545,15 @@ def test_the_look_for_another_minimum_finds_a_repetition_and_nothing_where_there
 
         return objective, refine
 
-    for depth in (0.003, 0.5):
-        objective, refine = wells(depth, periodic=True)
-        found = other_minimum.look_for_other_minimum(objective, refine, meta, result, objective(result), np.radians(1.8), probe)
+    def look(depth: float, periodic: bool = True):
+        objective, refine = wells(depth, periodic)
+        return other_minimum.look_for_other_minimum(objective, refine, meta, result, objective(result), np.radians(1.8), probe, sharpness=0.1)
+
+    for depth in (0.003, 0.1):
+        found = look(depth)
         assert found is not None and found.rise == pytest.approx(depth) and found.distance_cells == pytest.approx(period / probe)
-    objective, refine = wells(0.0, periodic=False)
-    assert other_minimum.look_for_other_minimum(objective, refine, meta, result, objective(result), np.radians(1.8), probe) is None
+    assert look(other_minimum.DESCENT_GATE + 0.1) is None  # a dip too high to be a minimum as deep: no descent
+    assert look(0.0, periodic=False) is None
 
 
 def test_depth_ratios_follow_the_scale_of_points_on_a_known_surface():

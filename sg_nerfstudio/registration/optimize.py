@@ -246,7 +246,7 @@ def register(
         evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos
         evidence.keypoint_scale_motion_px, evidence.keypoint_error_px = final_anchors.scale_motion_px(current)
     if not uses_anchors(settings, bool(anchor)) and decide(evidence).label != "failed":
-        record_other_minimum(evidence, main, meta, current, trimmed, settings)
+        record_other_minimum(evidence, main, meta, current, final_losses, settings)
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:
         evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
@@ -279,18 +279,24 @@ def register(
     )
 
 
-def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, result: Sim3, result_value: float, settings: RegistrationSettings) -> None:
+def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, result: Sim3, final_losses: Array, settings: RegistrationSettings) -> None:
     """Fill `evidence.other_minimum_rise` / `other_minimum_cells` by `other_minimum.look_for_other_minimum` around
-    `result` (meta -> dataparser; `result_value` its trimmed main-stage objective): the scan and the comparison on the
-    main stage's objective, the descent by `optimise_stage` on it (a stage of its own, off the registration's history)."""
+    `result` (meta -> dataparser; `final_losses` [P] the main stage's per-photo losses there): on the main stage's
+    objective restricted to the `other_minimum.PHOTOS` photos with the lowest losses, the descent by `optimise_stage`
+    on them (a stage of its own, off the registration's history)."""
     rule = TrimmingRule.of(settings)
-    descent = Stage("other-minimum", main.losses, other_minimum.REFINE_STEPS, other_minimum.REFINE_LR, other_minimum.REFINE_LR / 6)
+    chosen = sorted(np.argsort(final_losses, kind="stable")[: other_minimum.PHOTOS].tolist())
+    losses = main.losses
+    subset = PhotoLosses(losses.reference, [losses.photos[i] for i in chosen], losses.objective, losses.settings, losses.near_plane)
+    descent = Stage("other-minimum", subset, other_minimum.REFINE_STEPS, other_minimum.REFINE_LR, other_minimum.REFINE_LR / 6)
     found = other_minimum.look_for_other_minimum(
-        objective=lambda transform: rule.trimmed_mean(objective_at(main.losses, transform)),
-        refine=lambda start: optimise_stage(descent, meta, start, settings, History([p.name for p in main.losses.photos]), 0, None)[0],
-        meta=meta, result=result, result_value=result_value,
-        rotation_probe=np.radians(evidence.probe_rotation_deg), translation_probe=evidence.probe_translation,
+        objective=lambda transform: rule.trimmed_mean(objective_at(subset, transform)),
+        refine=lambda start: optimise_stage(descent, meta, start, settings, History([p.name for p in subset.photos]), 0, None)[0],
+        meta=meta, result=result, result_value=rule.trimmed_mean(final_losses[chosen]),
+        rotation_probe=np.radians(evidence.probe_rotation_deg), translation_probe=evidence.probe_translation, sharpness=evidence.sharpness,
     )
+    for key in losses.timings:  # the look's renders count with the registration's (and in its verdict time)
+        losses.timings[key] += subset.timings[key]
     if found is not None:
         evidence.other_minimum_rise, evidence.other_minimum_cells = found.rise, found.distance_cells
 

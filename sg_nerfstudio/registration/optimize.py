@@ -282,10 +282,11 @@ def register(
 def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, result: Sim3, final_losses: Array, settings: RegistrationSettings) -> None:
     """Fill `evidence.other_minimum_rise` / `other_minimum_cells` by `other_minimum.look_for_other_minimum` around
     `result` (meta -> dataparser; `final_losses` [P] the main stage's per-photo losses there): on the main stage's
-    objective restricted to the `other_minimum.PHOTOS` photos with the lowest losses, the descent by `optimise_stage`
-    on them (a stage of its own, off the registration's history)."""
+    objective restricted to the `other_minimum.PHOTOS` photos the model covers most at the result, the descent by
+    `optimise_stage` on them (a stage of its own, off the registration's history)."""
     rule = TrimmingRule.of(settings)
-    chosen = sorted(np.argsort(final_losses, kind="stable")[: other_minimum.PHOTOS].tolist())
+    coverage = -np.asarray(evidence.per_photo_coverage)
+    chosen = sorted(np.argsort(coverage, kind="stable")[: other_minimum.PHOTOS].tolist())
     losses = main.losses
     subset = PhotoLosses(losses.reference, [losses.photos[i] for i in chosen], losses.objective, losses.settings, losses.near_plane)
     descent = Stage("other-minimum", subset, other_minimum.REFINE_STEPS, other_minimum.REFINE_LR, other_minimum.REFINE_LR / 6)

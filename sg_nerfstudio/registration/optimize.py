@@ -33,7 +33,7 @@ from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.registration import other_minimum
-from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, gather_evidence
+from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence
 
 Array = np.ndarray
 
@@ -245,7 +245,7 @@ def register(
     if final_anchors is not None:
         evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos
         evidence.keypoint_scale_motion_px, evidence.keypoint_error_px = final_anchors.scale_motion_px(current)
-    if not uses_anchors(settings, bool(anchor)) and decide(evidence).label != "failed":
+    if not uses_anchors(settings, bool(anchor)) and failure(evidence) is None:  # a failed result needs no second look
         record_other_minimum(evidence, main, meta, current, final_losses, settings)
     elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
     if elsewhere:

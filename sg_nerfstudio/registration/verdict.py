@@ -240,14 +240,24 @@ def scale_probes(
     return float(min(rises)), float(step)
 
 
-def decide(evidence: Evidence) -> Verdict:
-    """The label and the reasons for it (see the module docstring for the rule)."""
+def failure(evidence: Evidence) -> Optional[list[str]]:
+    """The reasons the evidence makes a result `failed` (too few photos agree, or a flat objective), or None."""
     agreeing = f"{evidence.agreeing_photos} of {evidence.photos} photos agree"
     sharp = f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
     if evidence.agreeing_fraction < FAILED_AGREEING:
-        return Verdict("failed", [f"only {agreeing}", sharp], evidence)
+        return [f"only {agreeing}", sharp]
     if evidence.sharpness < FAILED_SHARPNESS:
-        return Verdict("failed", [f"flat objective: {sharp}", agreeing], evidence)
+        return [f"flat objective: {sharp}", agreeing]
+    return None
+
+
+def decide(evidence: Evidence) -> Verdict:
+    """The label and the reasons for it (see the module docstring for the rule)."""
+    failed = failure(evidence)
+    if failed:
+        return Verdict("failed", failed, evidence)
+    agreeing = f"{evidence.agreeing_photos} of {evidence.photos} photos agree"
+    sharp = f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
     reasons = []
     if evidence.agreeing_fraction < REGISTERED_AGREEING:
         reasons.append(f"only {agreeing}")

@@ -291,7 +291,7 @@ def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, resul
     subset = PhotoLosses(losses.reference, [losses.photos[i] for i in chosen], losses.objective, losses.settings, losses.near_plane)
     descent = Stage("other-minimum", subset, other_minimum.REFINE_STEPS, other_minimum.REFINE_LR, other_minimum.REFINE_LR / 6)
     found = other_minimum.look_for_other_minimum(
-        objective=lambda transform: rule.trimmed_mean(objective_at(subset, transform)),
+        objective=objective_with_anchors(subset, result, settings, None),
         refine=lambda start: optimise_stage(descent, meta, start, settings, History([p.name for p in subset.photos]), 0, None)[0],
         meta=meta, result=result, result_value=rule.trimmed_mean(final_losses[chosen]),
         rotation_probe=np.radians(evidence.probe_rotation_deg), translation_probe=evidence.probe_translation, sharpness=evidence.sharpness,

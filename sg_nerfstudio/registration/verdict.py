@@ -240,10 +240,14 @@ def scale_probes(
     return float(min(rises)), float(step)
 
 
+def agreement_and_sharpness(evidence: Evidence) -> tuple[str, str]:
+    """The two phrases every verdict's reasons are made of: how many photos agree, how far the objective rises."""
+    return f"{evidence.agreeing_photos} of {evidence.photos} photos agree", f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
+
+
 def failure(evidence: Evidence) -> Optional[list[str]]:
     """The reasons the evidence makes a result `failed` (too few photos agree, or a flat objective), or None."""
-    agreeing = f"{evidence.agreeing_photos} of {evidence.photos} photos agree"
-    sharp = f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
+    agreeing, sharp = agreement_and_sharpness(evidence)
     if evidence.agreeing_fraction < FAILED_AGREEING:
         return [f"only {agreeing}", sharp]
     if evidence.sharpness < FAILED_SHARPNESS:
@@ -256,8 +260,7 @@ def decide(evidence: Evidence) -> Verdict:
     failed = failure(evidence)
     if failed:
         return Verdict("failed", failed, evidence)
-    agreeing = f"{evidence.agreeing_photos} of {evidence.photos} photos agree"
-    sharp = f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
+    agreeing, sharp = agreement_and_sharpness(evidence)
     reasons = []
     if evidence.agreeing_fraction < REGISTERED_AGREEING:
         reasons.append(f"only {agreeing}")

@@ -16,7 +16,7 @@ the splats are the realistic test load of the rasterizer benchmark.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable, Literal
 
 import numpy as np
@@ -424,12 +424,11 @@ def landmark_surfaces(config: BuildingConfig) -> list[Surface]:
     w, d, h = config.width, config.depth, config.height
     floors = [0.33, 0.66]
     styles = {
-        "front": FacadeStyle(stone, trim, glass, rows=2, cols=config.window_cols, door=True, rose_window=True, floors=floors),
-        "rear": FacadeStyle(stone * 0.95, trim, glass, rows=config.window_rows, cols=max(config.window_cols - 2, 2), window_shape="tall", floors=[0.5]),
-        "left": FacadeStyle(stone, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), floors=floors),
-        "right": FacadeStyle(stone * 1.03, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), window_shape="square", floors=floors),
+        "front": FacadeStyle(stone, trim, glass, rows=2, cols=config.window_cols, door=True, rose_window=True, floors=floors, unique_detail=config.unique_detail),
+        "rear": FacadeStyle(stone * 0.95, trim, glass, rows=config.window_rows, cols=max(config.window_cols - 2, 2), window_shape="tall", floors=[0.5], unique_detail=config.unique_detail),
+        "left": FacadeStyle(stone, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), floors=floors, unique_detail=config.unique_detail),
+        "right": FacadeStyle(stone * 1.03, trim, glass, rows=config.window_rows, cols=max(int(config.window_cols * d / w), 2), window_shape="square", floors=floors, unique_detail=config.unique_detail),
     }
-    styles = {side: replace(style, unique_detail=config.unique_detail) for side, style in styles.items()}
     surfaces = box_walls("body", (0.0, 0.0), (w, d), 0.0, h, styles, config.palette_seed)
     ground = ground_pattern(config.palette_seed, np.array([w / 2, d / 2]), config.unique_detail)
     surfaces.append(ground_disc(config.ground_radius, ground, config.ground_density))

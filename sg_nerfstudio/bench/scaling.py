@@ -157,6 +157,7 @@ def measure(args: ChildArgs) -> dict:
     """Load, cull, time steps and optionally register (see the module docstring); runs in its own process."""
     from sg_nerfstudio.geometry.meta_image import load_meta_image
     from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
+    from sg_nerfstudio.initialisers.pipeline import reference_keypoints
     from sg_nerfstudio.registration.metrics import pose_errors
     from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos
     from sg_nerfstudio.registration.optimize import effective_near_plane, register
@@ -224,15 +225,6 @@ def measure(args: ChildArgs) -> dict:
     if args.device == "cuda":
         record["peak_cuda_gb"] = torch.cuda.max_memory_allocated() / 2**30
     return record
-
-
-def reference_keypoints(load_config: Path, meta) -> list:
-    """The meta-image's keypoint anchors from the SIFT initialiser of the run's own reference, as ns-register-meta
-    builds them (COLMAP's log at warnings)."""
-    from sg_nerfstudio.initialisers.pipeline import Initialiser, InitialiserSettings, resolve_reference_source, set_colmap_verbosity
-
-    set_colmap_verbosity(False)
-    return Initialiser(resolve_reference_source(load_config, None, None), InitialiserSettings()).keypoints(meta)
 
 
 def run_child(child: ChildArgs, wait: bool = True):

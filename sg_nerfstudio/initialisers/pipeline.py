@@ -176,6 +176,14 @@ def resolve_reference_source(config_path: Optional[Path], colmap_path: Optional[
                            Path(images_path) if images_path else from_config.images_path)
 
 
+def reference_keypoints(load_config: Path, meta: MetaImage) -> list[PhotoKeypoints]:
+    """The meta-image's keypoint anchors from the SIFT initialiser of a trained run's own reference (its COLMAP
+    model and images, from the config's dataparser), as `ns-register-meta` builds them; COLMAP's log at warnings.
+    For benchmarks that register one meta-image as the command does."""
+    set_colmap_verbosity(False)
+    return Initialiser(resolve_reference_source(load_config, None, None), InitialiserSettings()).keypoints(meta)
+
+
 def set_colmap_verbosity(verbose: bool) -> None:
     """COLMAP's own log (glog, on stderr): its INFO lines with `verbose`, else only warnings and errors
     (extraction, matching and triangulation otherwise print hundreds of lines between the progress bars)."""

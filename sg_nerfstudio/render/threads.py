@@ -5,9 +5,11 @@ the cores and spin against each other (a training step measured 0.38 s alone and
 jobs), so every command takes `--threads N` and sets both pools through `set_threads`: give concurrent jobs
 a share of the cores each (e.g. `--threads 1` for two jobs on two cores).
 
-Both pools are OpenMP, whose idle threads spin by default; importing `sg_nerfstudio` first sets
-`OMP_WAIT_POLICY=PASSIVE` (unless already set) so that they sleep instead, which is what keeps two jobs with the
-default threads from collapsing (measured in `bench/scaling.py`).
+Both pools are GNU OpenMP, whose idle threads spin 300,000 times before they sleep; importing `sg_nerfstudio` first
+sets `GOMP_SPINCOUNT=1000` (unless a spin count or `OMP_WAIT_POLICY` is already set): short enough that two jobs with
+the default threads share the cores (2x each) instead of collapsing, long enough that a lone job's threads are
+awake for torch's many small parallel regions (about 25% faster than `OMP_WAIT_POLICY=PASSIVE`; docs/measurements.md
+"Threads that spin a little").
 """
 
 from __future__ import annotations

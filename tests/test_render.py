@@ -281,6 +281,23 @@ def test_threads_setting_sizes_torch_and_numba_pools():
         numba.set_num_threads(before[1])
 
 
+@pytest.mark.parametrize(
+    "given, expected",
+    [({}, ("1000", None)), ({"OMP_WAIT_POLICY": "PASSIVE"}, (None, "PASSIVE")), ({"GOMP_SPINCOUNT": "50"}, ("50", None))],
+)
+def test_importing_the_package_bounds_the_openmp_spin_unless_the_user_chose(given, expected):
+    """A fresh interpreter (the variables only count before torch starts OpenMP): the import sets a spin count of
+    1000 where the user set neither a spin count nor a wait policy, and leaves a user's choice alone."""
+    import os
+    import subprocess
+    import sys
+
+    env = {key: value for key, value in os.environ.items() if key not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    code = "import os, sg_nerfstudio; print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, **given}, capture_output=True, text=True, check=True).stdout.split()
+    assert tuple(None if value == "None" else value for value in out) == expected
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_frozen_projection_matches_autograd_projection_and_its_camera_gradients(seed):
     """The compiled projection of a frozen model (registration) gives the outputs and viewmat gradients of

@@ -15,14 +15,17 @@ import sys
 __version__ = "0.1.0"
 
 if "OMP_WAIT_POLICY" not in os.environ:
-    os.environ.setdefault("GOMP_SPINCOUNT", "1000")
+    os.environ.setdefault("GOMP_SPINCOUNT", "1000")  # GNU OpenMP: torch's and numba's pools on Linux
+    os.environ.setdefault("KMP_BLOCKTIME", "0")  # Intel / LLVM OpenMP (macOS, some conda builds): sleep at once, as before
 """An idle OpenMP thread spins 1000 times before it sleeps, unless the user chose a wait policy or a spin count
 (docs/measurements.md "Threads that spin a little"). torch's and numba's pools are both GNU OpenMP, whose idle
 threads otherwise spin 300,000 times: two jobs on a 2-core machine collapsed (one registration 18.8 s alone, 185 s
 and 208 s side by side). Sleeping at once (`OMP_WAIT_POLICY=PASSIVE`, the setting here before) keeps a pair at 1.2x
 its solo time, but a lone registration with 2 threads then ran barely faster than with 1; with 1000 spins it runs
 about 25% faster than passive, and a pair takes 2x each (no collapse). Jobs meant to run side by side do best with
-`OMP_WAIT_POLICY=PASSIVE` or `--threads 1` each. It takes effect when this package is imported before torch starts
+`OMP_WAIT_POLICY=PASSIVE` or `--threads 1` each. Intel's and LLVM's OpenMP ignore the spin count; `KMP_BLOCKTIME=0`
+keeps their threads sleeping at once, as the passive policy did (not measured here: this machine's torch and numba
+load GNU OpenMP only). It takes effect when this package is imported before torch starts
 its OpenMP runtime: every sg-* command and `python -m sg_nerfstudio...`, not `ns-train`, which imports torch first."""
 
 MOVED_MODULES = {

@@ -283,17 +283,23 @@ def test_threads_setting_sizes_torch_and_numba_pools():
 
 @pytest.mark.parametrize(
     "given, expected",
-    [({}, ("1000", None)), ({"OMP_WAIT_POLICY": "PASSIVE"}, (None, "PASSIVE")), ({"GOMP_SPINCOUNT": "50"}, ("50", None))],
+    [
+        ({}, ("1000", "0", None)),
+        ({"OMP_WAIT_POLICY": "PASSIVE"}, (None, None, "PASSIVE")),
+        ({"GOMP_SPINCOUNT": "50"}, ("50", "0", None)),
+    ],
 )
 def test_importing_the_package_bounds_the_openmp_spin_unless_the_user_chose(given, expected):
     """A fresh interpreter (the variables only count before torch starts OpenMP): the import sets a spin count of
-    1000 where the user set neither a spin count nor a wait policy, and leaves a user's choice alone."""
+    1000 (GNU OpenMP) and a block time of 0 (Intel / LLVM OpenMP) where the user set no wait policy, and leaves a
+    user's choice alone."""
     import os
     import subprocess
     import sys
 
-    env = {key: value for key, value in os.environ.items() if key not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
-    code = "import os, sg_nerfstudio; print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))"
+    names = ("GOMP_SPINCOUNT", "KMP_BLOCKTIME", "OMP_WAIT_POLICY")
+    env = {key: value for key, value in os.environ.items() if key not in names}
+    code = f"import os, sg_nerfstudio; print(*(os.environ.get(name) for name in {names}))"
     out = subprocess.run([sys.executable, "-c", code], env={**env, **given}, capture_output=True, text=True, check=True).stdout.split()
     assert tuple(None if value == "None" else value for value in out) == expected
 

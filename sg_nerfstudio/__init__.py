@@ -25,8 +25,8 @@ its solo time, but a lone registration with 2 threads then ran barely faster tha
 about 25% faster than passive, and a pair takes 2x each (no collapse). Jobs meant to run side by side do best with
 `OMP_WAIT_POLICY=PASSIVE` or `--threads 1` each. Intel's and LLVM's OpenMP ignore the spin count; `KMP_BLOCKTIME=0`
 keeps their threads sleeping at once, as the passive policy did (not measured here: this machine's torch and numba
-load GNU OpenMP only). It takes effect when this package is imported before torch starts
-its OpenMP runtime: every sg-* command and `python -m sg_nerfstudio...`, not `ns-train`, which imports torch first."""
+load GNU OpenMP only). It takes effect when this package is imported before torch starts its OpenMP runtime: every
+sg-* command and `python -m sg_nerfstudio...`, not `ns-train`, which imports torch first."""
 
 MOVED_MODULES = {
     "sg_nerfstudio.method": "sg_nerfstudio.splat.method",

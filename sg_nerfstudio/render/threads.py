@@ -7,10 +7,9 @@ a share of the cores each (e.g. `--threads 1` for two jobs on two cores).
 
 Both pools are GNU OpenMP, whose idle threads spin 300,000 times before they sleep; importing `sg_nerfstudio` first
 sets `GOMP_SPINCOUNT=1000` and, for Intel's or LLVM's OpenMP, `KMP_BLOCKTIME=0` (unless `OMP_WAIT_POLICY` or the
-variable is already set): short enough that two jobs with
-the default threads share the cores (2x each) instead of collapsing, long enough that a lone job's threads are
-awake for torch's many small parallel regions (about 25% faster than `OMP_WAIT_POLICY=PASSIVE`; docs/measurements.md
-"Threads that spin a little").
+variable is already set): short enough that two jobs with the default threads share the cores (2x each) instead of
+collapsing, long enough that a lone job's threads are awake for torch's many small parallel regions (about 25%
+faster than `OMP_WAIT_POLICY=PASSIVE`; docs/measurements.md "Threads that spin a little").
 """
 
 from __future__ import annotations

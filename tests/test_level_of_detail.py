@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
-from sg_nerfstudio.registration.level_of_detail import coarsen, footprint_cells, merge, plan_merge
+from sg_nerfstudio.registration.level_of_detail import coarsen, distinct_row_ids, footprint_cells, merge, plan_merge
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.visibility import MAX_VOXEL_DOUBLINGS, CullingCamera, VisibleSubset
@@ -117,3 +118,12 @@ def test_a_render_budget_coarsens_only_models_that_exceed_it():
     # A budget no voxel can meet stops at the largest voxel allowed rather than merging the model away.
     tiny = VisibleSubset(model, cameras, level_of_detail=1.0, render_budget=1)
     assert tiny.for_pose(Sim3.identity()).count > 1 and tiny.voxel_pixels == 2.0**MAX_VOXEL_DOUBLINGS
+
+
+@pytest.mark.parametrize("spread", [3000, 2**40])  # packed into one int64; ranges beyond 63 bits: unique over rows
+def test_distinct_row_ids_number_rows_as_unique_over_rows_does(spread):
+    generator = torch.Generator().manual_seed(0)
+    keys = torch.cat([torch.randint(-1, 4, (2000, 1), generator=generator), torch.randint(-spread, spread, (2000, 3), generator=generator)], 1)
+    keys = torch.cat([keys, keys[:500]])  # repeated rows share an id
+    assert torch.equal(distinct_row_ids(keys), torch.unique(keys, dim=0, return_inverse=True)[1])
+    assert distinct_row_ids(keys[:0]).shape == (0,)

@@ -91,8 +91,26 @@ def plan_merge(means: Tensor, covars: Tensor, cells: Tensor) -> MergePlan:
     alone = torch.arange(n, device=means.device)
     # Gaussians that do not merge get keys of their own: a level no merging Gaussian has, and their index.
     keys[~mergeable] = torch.stack([torch.full_like(alone, -1), alone, alone, alone], dim=1)[~mergeable]
-    _, cluster = torch.unique(keys, dim=0, return_inverse=True)
+    cluster = distinct_row_ids(keys)
     return MergePlan(cluster, int(cluster.max()) + 1)
+
+
+def distinct_row_ids(keys: Tensor) -> Tensor:
+    """[N] ids of the distinct rows of integer `keys` [N, K], numbered in lexicographic order of the rows: the inverse
+    of `torch.unique(keys, dim=0)`. Each row is first packed into one int64 (columns shifted to start at 0, mixed
+    radix), since unique over rows compares them one pair at a time on the CPU (1.0 s for 1M rows of 4 columns,
+    0.03 s packed); rows whose ranges do not fit in 63 bits take that path."""
+    if keys.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.int64, device=keys.device)
+    low = keys.min(dim=0).values
+    ranges = [int(r) for r in keys.max(dim=0).values - low + 1]
+    if math.prod(ranges) >= 2**63:
+        return torch.unique(keys, dim=0, return_inverse=True)[1]
+    shifted = keys - low
+    packed = shifted[:, 0].clone()
+    for column, size in enumerate(ranges[1:], start=1):
+        packed = packed * size + shifted[:, column]
+    return torch.unique(packed, return_inverse=True)[1]
 
 
 def _face_on_area(covars: Tensor) -> Tensor:

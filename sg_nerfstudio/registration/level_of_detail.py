@@ -89,8 +89,10 @@ def plan_merge(means: Tensor, covars: Tensor, cells: Tensor) -> MergePlan:
     voxels = torch.floor(means / sizes[:, None]).to(torch.int64)
     keys = torch.cat([levels[:, None], voxels], dim=1)
     alone = torch.arange(n, device=means.device)
-    # Gaussians that do not merge get keys of their own: a level no merging Gaussian has, and their index.
-    keys[~mergeable] = torch.stack([torch.full_like(alone, -1), alone, alone, alone], dim=1)[~mergeable]
+    # Gaussians that do not merge get keys of their own: a level no merging Gaussian has, and their index (one column
+    # is enough, and keeps the keys' ranges small enough for `distinct_row_ids` to pack them).
+    zero = torch.zeros_like(alone)
+    keys[~mergeable] = torch.stack([torch.full_like(alone, -1), alone, zero, zero], dim=1)[~mergeable]
     cluster = distinct_row_ids(keys)
     return MergePlan(cluster, int(cluster.max()) + 1)
 
@@ -107,7 +109,7 @@ def distinct_row_ids(keys: Tensor) -> Tensor:
     if math.prod(ranges) >= 2**63:
         return torch.unique(keys, dim=0, return_inverse=True)[1]
     shifted = keys - low
-    packed = shifted[:, 0].clone()
+    packed = shifted[:, 0]
     for column, size in enumerate(ranges[1:], start=1):
         packed = packed * size + shifted[:, column]
     return torch.unique(packed, return_inverse=True)[1]

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+import numpy as np
 
 import pytest
 import torch
@@ -10,7 +13,7 @@ import torch
 from sg_nerfstudio.registration.level_of_detail import coarsen, distinct_row_ids, footprint_cells, merge, plan_merge
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.reference import ReferenceModel
-from sg_nerfstudio.registration.visibility import MAX_VOXEL_DOUBLINGS, CullingCamera, VisibleSubset
+from sg_nerfstudio.registration.visibility import MAX_ROTATION_DEG, MAX_VOXEL_DOUBLINGS, CullingCamera, VisibleSubset
 from sg_nerfstudio.render import rasterize
 from sg_nerfstudio.render.projection import cull_gaussians
 
@@ -115,9 +118,34 @@ def test_a_render_budget_coarsens_only_models_that_exceed_it():
     over = VisibleSubset(model, cameras, level_of_detail=1.0, render_budget=one_pixel.count // 2)
     coarser = over.for_pose(Sim3.identity())
     assert over.voxel_pixels in (2.0, 4.0) and coarser.count <= one_pixel.count // 2
+    # The budget only chooses the voxel: the model is the one merged at that voxel directly.
+    direct = VisibleSubset(model, cameras, level_of_detail=over.voxel_pixels).for_pose(Sim3.identity())
+    for name in ("means", "covars", "opacities", "colors", "gaussian_features"):
+        assert torch.equal(getattr(direct, name), getattr(coarser, name)), name
     # A budget no voxel can meet stops at the largest voxel allowed rather than merging the model away.
     tiny = VisibleSubset(model, cameras, level_of_detail=1.0, render_budget=1)
     assert tiny.for_pose(Sim3.identity()).count > 1 and tiny.voxel_pixels == 2.0**MAX_VOXEL_DOUBLINGS
+
+
+def turned_about_y(degrees: float) -> Sim3:
+    angle = math.radians(degrees)
+    rotation = [[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0], [-math.sin(angle), 0.0, math.cos(angle)]]
+    return Sim3.from_parts(1.0, rotation, [0.0, 0.0, 0.0])
+
+
+def test_a_held_cull_serves_every_pose_until_released():
+    model = textured_plane(2000, seed=1)
+    viewmats, Ks, width, height = camera()
+    visible = VisibleSubset(model, [CullingCamera(viewmats[0, :3].double(), Ks[0], width, height)], level_of_detail=1.0)
+    visible.for_pose(Sim3.identity())
+    near, far = turned_about_y(1.0), turned_about_y(3.0 * MAX_ROTATION_DEG)
+    with visible.held_at(near):  # culled again at exactly the held pose, though within the bounds of the last cull
+        assert visible.culls == 2 and np.array_equal(visible.pose.matrix, near.matrix)
+        held = visible.subset
+        assert visible.for_pose(far) is held and visible.culls == 2  # a pose beyond the bounds: the held model
+    assert visible.for_pose(far) is not held and visible.culls == 3  # released: the pose is culled for again
+    with visible.held_at(far):  # already culled there
+        assert visible.culls == 3
 
 
 @pytest.mark.parametrize("spread", [3000, 2**40])  # packed into one int64; ranges beyond 63 bits: unique over rows

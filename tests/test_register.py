@@ -1315,3 +1315,23 @@ def test_a_registration_with_one_anchored_photo_searches_the_scale_it_leaves_fre
     assert result.verdict.evidence.scale_rise is not None and result.verdict.evidence.scale_probe > 0
     before, after = (pose_errors(meta.poses, t, ground_truth).translation for t in (start, result.transform))
     assert after < 0.3 * before, (before, after, result.scale_search)
+
+
+def test_the_verdicts_probes_render_the_model_culled_at_the_result(reference, meta, ground_truth, monkeypatch):
+    """The final losses and the 12 probes around the result all render the one model culled (and coarsened) at the
+    result: no probe culls again (probes in opposite directions used to move the cull back and forth, seconds each
+    on a reference of millions of Gaussians, and compared the result with models merged at other poses)."""
+    seen = {}
+    original = optimize.gather_evidence
+
+    def spying(losses, meta, final_ns, *args, **kwargs):
+        seen["before"], seen["pose"] = losses.visible.culls, losses.visible.pose
+        evidence = original(losses, meta, final_ns, *args, **kwargs)
+        seen["after"], seen["final"] = losses.visible.culls, final_ns
+        return evidence
+
+    monkeypatch.setattr(optimize, "gather_evidence", spying)
+    start = perturbed_start(meta, ground_truth, 7, 2.0, 0.02, 0.02)
+    register(reference, meta, start, RegistrationSettings(**{**FAST, "steps": 3, "objective": "teacher-on-render"}))
+    assert seen["after"] == seen["before"]
+    np.testing.assert_array_equal(seen["pose"].matrix, seen["final"].matrix)

@@ -10,9 +10,11 @@ and gets back is in the reference *world* frame.
 
 from __future__ import annotations
 
+import math
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
-from typing import Callable, Optional
+from typing import Callable, ContextManager, Optional
 
 import numpy as np
 import torch
@@ -33,7 +35,8 @@ from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.registration import other_minimum
-from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence
+from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence, probe_sizes
+from sg_nerfstudio.registration.visibility import MAX_ROTATION_DEG
 
 Array = np.ndarray
 
@@ -234,12 +237,13 @@ def register(
             seed = initial_losses if stage is main and index == 0 and current is initial_ns else None  # the start's losses, if still the start
             current, step = optimise_stage(stage, meta, current, settings, history, step, report, seed, anchor)
 
-    final_losses, final_coverage, trimmed, depth = final_evaluation(main.losses, current, settings)
-    probing = time.perf_counter()
-    evidence = gather_evidence(
-        main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth,
-        scale_search["photos"] if scale_search else None,
-    )
+    with held_for_probes(main.losses, meta, current):
+        final_losses, final_coverage, trimmed, depth = final_evaluation(main.losses, current, settings)
+        probing = time.perf_counter()
+        evidence = gather_evidence(
+            main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth,
+            scale_search["photos"] if scale_search else None,
+        )
     evidence.camera_fit_refused = fit.refused or None
     final_anchors = anchor.term(main.losses.objective.teacher.grid_size, 1.0)
     if final_anchors is not None:
@@ -277,6 +281,16 @@ def register(
         photo_poses={photo.name: (ns_to_world @ current).move_camera(photo.cam_from_world) for photo in meta.photos if photo.name in fit.poses},
         scale_search=scale_search,
     )
+
+
+def held_for_probes(losses: PhotoLosses, meta: MetaImage, result: Sim3) -> ContextManager:
+    """Render the final evaluation and the verdict's probes (`verdict.gather_evidence`) with the model culled at the
+    result (`VisibleSubset.held_at`) when a probe stays within the cull's bounds; otherwise each render culls for
+    its own pose as the optimisation does."""
+    if losses.visible is None:
+        return nullcontext()
+    rotation, _ = probe_sizes(meta, losses.photos, losses.objective.teacher.grid_size, result)
+    return losses.visible.held_at(result) if math.degrees(rotation) <= MAX_ROTATION_DEG else nullcontext()
 
 
 def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, result: Sim3, final_losses: Array, settings: RegistrationSettings) -> None:

@@ -15,15 +15,20 @@ a 3% shift of the camera gives (under 2°). `tests/test_register.py` checks rend
 With `level_of_detail` (render pixels, > 0) the culled model is also coarsened for the photos' render size at
 the cull pose (`level_of_detail.coarsen`: Gaussians far below a pixel merged per voxel), so that the cost of a
 step follows the pixels the photos render rather than the size of the reference. With a `render_budget`, a
-coarsened model that still holds more Gaussians than the budget is merged again with voxels twice as large
+coarsened model that would still hold more Gaussians than the budget is planned again with voxels twice as large
 (up to `MAX_VOXEL_DOUBLINGS` times): a reference of millions of Gaussians, whose trained Gaussians are each
 about one render pixel and so rarely share a one-pixel voxel, is then rendered at a bounded cost per step,
 while a model within the budget renders exactly as at `level_of_detail`.
+
+`held_at` pins the model culled at one pose for every render until released: the verdict's probes around the result
+(registration/optimize.py, `held_for_probes`) all render the result's model, within the cull's bounds.
 """
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -31,7 +36,7 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.frames import camera_to_world, viewmat
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.registration.level_of_detail import coarsen, footprint_cells
+from sg_nerfstudio.registration.level_of_detail import footprint_cells, merge, plan_merge
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.render.projection import cull_gaussians
 
@@ -70,13 +75,35 @@ class VisibleSubset:
         self.depths = np.zeros(len(cameras))  # median depth of the Gaussians each camera saw then
         self.subset = reference
         self.culls = 0
+        self.held = False
 
     def for_pose(self, meta_to_dataparser: Sim3) -> ReferenceModel:
-        """The culled model for rendering the photos under `meta_to_dataparser` (torch or numpy Sim3)."""
+        """The culled model for rendering the photos under `meta_to_dataparser` (torch or numpy Sim3); inside
+        `held_at`, the model culled at the held pose."""
+        if self.held:
+            return self.subset
         pose = meta_to_dataparser.numpy()
         if self.pose is None or self.moved_far(pose):
             self.cull(pose)
         return self.subset
+
+    @contextmanager
+    def held_at(self, meta_to_dataparser: Sim3) -> Iterator[None]:
+        """Within it every render uses the model culled (and coarsened) at exactly this pose, whatever pose it is for.
+
+        For poses within the cull's bounds of it (MAX_ROTATION_DEG, MAX_SHIFT), which the caller ensures: the
+        verdict's probes one teacher cell around the result. Without it, probes in opposite directions each moved
+        the cull (a probe's shift is about one cell's angle times the depth, 3% for fast-cpu, at MAX_SHIFT), and on
+        a reference of millions of Gaussians each cull merges the level of detail again (seconds), and each probe
+        was compared with the result under a model merged at another pose."""
+        pose = meta_to_dataparser.numpy()
+        if self.pose is None or not np.array_equal(self.pose.matrix, pose.matrix):
+            self.cull(pose)
+        self.held = True
+        try:
+            yield
+        finally:
+            self.held = False
 
     def moved_far(self, pose: Sim3) -> bool:
         relative = pose @ self.pose.inverse()
@@ -111,13 +138,15 @@ class VisibleSubset:
     def coarsened(self, culled: ReferenceModel, pixel_cells: Tensor) -> ReferenceModel:
         """`culled` merged per voxel of `level_of_detail` render pixels, doubled while the result holds more than
         `render_budget` Gaussians (at most `MAX_VOXEL_DOUBLINGS` times). `pixel_cells`: [N] one render pixel at the
-        nearest photo that sees each Gaussian, scene units (`footprint_cells` at 1 pixel)."""
+        nearest photo that sees each Gaussian, scene units (`footprint_cells` at 1 pixel). Each voxel size is only
+        planned (a plan's count is the merged model's), and the model merged once, at the size chosen: the merge is
+        the costly part (about 2.9 s of a 1M-Gaussian cull, its plan 0.1 s)."""
         pixels = self.level_of_detail
-        model = coarsen(culled, pixel_cells * pixels)
+        plan = plan_merge(culled.means, culled.covars, pixel_cells * pixels)
         for _ in range(MAX_VOXEL_DOUBLINGS):
-            if self.render_budget <= 0 or model.count <= self.render_budget:
+            if self.render_budget <= 0 or plan.count <= self.render_budget:
                 break
             pixels *= 2.0
-            model = coarsen(culled, pixel_cells * pixels)
+            plan = plan_merge(culled.means, culled.covars, pixel_cells * pixels)
         self.voxel_pixels = pixels
-        return model
+        return merge(culled, plan)

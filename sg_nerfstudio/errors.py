@@ -1,14 +1,17 @@
 """User-input errors: one sentence naming the input and what was expected.
 
 `InputError` is an ordinary exception: library callers catch the specific subclass, and every command
-catches it once, in `sg_nerfstudio.scripts.cli.cli_main`, which prints the sentence (no traceback) and
-exits with status 1. Under `ns-train` (nerfstudio's own command) `install_input_error_hook` does the same
-for an InputError that reaches the top, e.g. a dataset with missing images.
+catches it once, in `cli_main` below (every `sg-*` command and `python -m sg_nerfstudio.bench.*` module runs its body
+through it), which prints the sentence (no traceback) and exits with status 1. `FloatingPointError`, an optimisation
+that diverged, is printed the same way; anything else is a bug and keeps its traceback. Under `ns-train` (nerfstudio's
+own command) `install_input_error_hook` does the same for an InputError that reaches the top, e.g. a dataset with
+missing images.
 """
 
 from __future__ import annotations
 
 import sys
+from typing import Callable
 
 
 class InputError(Exception):
@@ -36,3 +39,15 @@ def install_input_error_hook() -> None:
 
     hook.prints_input_errors = True
     sys.excepthook = hook
+
+
+def cli_main(body: Callable[[], int]) -> int:
+    """Run a command's body; its exit status, or 1 after printing an InputError's (or FloatingPointError's) sentence."""
+    from rich.console import Console
+    from rich.text import Text
+
+    try:
+        return body()
+    except (InputError, FloatingPointError) as error:
+        Console(stderr=True).print(Text(str(error), style="red"), soft_wrap=True)
+        return 1

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 import json
 import shutil
 from pathlib import Path
@@ -332,3 +333,22 @@ def test_a_twin_copy_has_its_photos_pose_zoomed_camera_and_observations(suite, t
     runner.options = BenchOptions(settings=RegistrationSettings(keypoint_weight=1.0))
     subject = type("Subject", (), {"photos": [type("P", (), {"name": n})() for n in ("a", "b", "twin_a")]})()
     assert [k.name for k in runner.keypoints(subject, runner.options.settings)] == ["a", "twin_a"]
+
+
+@pytest.mark.parametrize("module, arguments", [
+    ("registration", ["--scene", "{missing}"]),
+    ("scaling", ["--meta-image", "{missing}", "--sizes", "1000", "--no-register", "--no-concurrency"]),  # through its child
+])
+def test_benchmark_modules_end_a_missing_reference_with_one_sentence(module, arguments, tmp_path):
+    """`python -m sg_nerfstudio.bench.<module>` prints the sentence of a bad input and exits 1, without a traceback
+    (bench.scaling: its measurement child's sentence, then its own)."""
+    import subprocess
+    import sys
+
+    missing = tmp_path / "missing"
+    command = [sys.executable, "-m", f"sg_nerfstudio.bench.{module}", "--load-config", str(missing / "config.yml"),
+               *[argument.format(missing=missing) for argument in arguments], "--output", str(tmp_path / "out.json")]
+    finished = subprocess.run(command, capture_output=True, text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert finished.returncode == 1
+    assert f"Config {missing / 'config.yml'} does not exist" in finished.stderr and "Traceback" not in finished.stderr
+    assert not (tmp_path / "out.json").exists()

@@ -12,6 +12,7 @@ PSNR >= 24 dB and mean cosine >= 0.8 within 15 minutes.
 from __future__ import annotations
 
 import statistics
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.synthetic import PRESETS, generate_scene
@@ -128,7 +130,7 @@ def run(args: Args) -> dict:
 
 
 def entrypoint() -> None:
-    run(tyro.cli(Args))
+    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ clean photos it keeps: the paper's median rule (`lts`) and `outlier-lts` at seve
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -26,7 +27,7 @@ from rich.table import Table
 
 from sg_nerfstudio.bench.layout import BenchmarkScene, read_benchmark
 from sg_nerfstudio.bench.runs import trained_reference
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import perturbed
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos
@@ -128,12 +129,7 @@ def run(args: Args) -> None:
 
 
 def entrypoint() -> None:
-    args = tyro.cli(Args)
-    try:
-        run(args)
-    except InputError as error:  # a wrong benchmark layout, reference or preset: its one sentence, exit 1
-        Console(stderr=True).print(error.message, style="red", soft_wrap=True)
-        raise SystemExit(1) from None
+    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))  # a wrong benchmark layout, reference or preset: its one sentence, exit 1
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ for the pose only (what registration needs). Times are medians over `--repeats` 
 from __future__ import annotations
 
 import statistics
+import sys
 import time
 from dataclasses import dataclass
 from typing import Optional
@@ -28,6 +29,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.render import rasterize
 from sg_nerfstudio.render.cpu_rasterizer import brute_force_composite
@@ -143,7 +145,7 @@ def main(args: Args) -> None:
 
 
 def entrypoint() -> None:
-    main(tyro.cli(Args))
+    sys.exit(cli_main(lambda: main(tyro.cli(Args)) or 0))
 
 
 if __name__ == "__main__":

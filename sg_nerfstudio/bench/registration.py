@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import statistics
+import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -36,6 +37,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.bench.runs import ABLATIONS, PERTURBED_START
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
@@ -213,4 +215,4 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    sys.exit(cli_main(lambda: main(tyro.cli(Args)) or 0))

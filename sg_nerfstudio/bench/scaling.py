@@ -58,6 +58,8 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.errors import InputError, cli_main
+
 MODES = {"today": (0.0, False), "new": (None, True)}
 """Benchmark paths by name: the `level_of_detail` each runs with (None: the preset's) and whether the compiled
 frozen-model kernels (`render.frozen_projection`) project and colour the model. `today` is the path before either
@@ -242,10 +244,14 @@ def run_child(child: ChildArgs, wait: bool = True):
     return read_record(process) if wait else process
 
 
+class MeasurementFailed(InputError):
+    """A measurement process that stopped (its own sentence or traceback is printed above it)."""
+
+
 def read_record(process: subprocess.Popen) -> dict:
     out, _ = process.communicate()
     if process.returncode != 0:
-        raise RuntimeError(f"A measurement process failed (exit {process.returncode}); its error is printed above.")
+        raise MeasurementFailed(f"A measurement process stopped (exit {process.returncode}); what stopped it is printed above.")
     return json.loads(out.strip().splitlines()[-1])
 
 
@@ -389,6 +395,5 @@ def main(args: Args) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "child":
-        print(json.dumps(measure(tyro.cli(ChildArgs, args=sys.argv[2:])), default=float))
-    else:
-        main(tyro.cli(Args))
+        sys.exit(cli_main(lambda: print(json.dumps(measure(tyro.cli(ChildArgs, args=sys.argv[2:])), default=float)) or 0))
+    sys.exit(cli_main(lambda: main(tyro.cli(Args)) or 0))

@@ -14,6 +14,7 @@ after the other in this process, never side by side.
 
 from __future__ import annotations
 
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.bench.feature_splat import view_quality
 from sg_nerfstudio.bench.layout import read_scene
 from sg_nerfstudio.features import TeacherConfig
@@ -111,7 +113,7 @@ def training_table(rows: list[dict], steps: int, threads: int) -> Table:
 
 
 def entrypoint() -> None:
-    run(tyro.cli(Args))
+    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))
 
 
 if __name__ == "__main__":

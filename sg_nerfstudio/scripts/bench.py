@@ -33,7 +33,7 @@ from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.registration.optimize import total_steps
 from sg_nerfstudio.registration.settings import load_preset
 from sg_nerfstudio.render.threads import set_threads
-from sg_nerfstudio.scripts.cli import cli_main
+from sg_nerfstudio.errors import cli_main
 
 Start = Literal["colmap", "generalized", "perturbed"]
 Ablation = Literal[tuple(ABLATIONS)]  # type: ignore[valid-type]

@@ -26,14 +26,13 @@ import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, cli_main
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.registration.session import RegistrationJob, run_job
 from sg_nerfstudio.registration.settings import load_preset
 from sg_nerfstudio.render.threads import set_threads
-from sg_nerfstudio.scripts.cli import cli_main
 from sg_nerfstudio.splat.training import cpu_config, save, short_cpu_schedule, train
 from sg_nerfstudio.synthetic import PRESETS, generate_scene
 

@@ -37,7 +37,7 @@ from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, InitResult, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.session import ArgumentError, read_ground_truths
-from sg_nerfstudio.scripts.cli import cli_main
+from sg_nerfstudio.errors import cli_main
 
 
 @dataclass

@@ -32,7 +32,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.scene import RealSceneSettings, build_real_scene
-from sg_nerfstudio.scripts.cli import cli_main
+from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.synthetic import PRESETS, SceneConfig, SceneGenerationError, generate_scene
 from sg_nerfstudio.synthetic.generator import SUITES
 

@@ -26,7 +26,7 @@ from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.meta_images import build_meta_images
 from sg_nerfstudio.photos.sfm import SfmSettings
 from sg_nerfstudio.render.threads import available_cores
-from sg_nerfstudio.scripts.cli import cli_main
+from sg_nerfstudio.errors import cli_main
 
 
 @dataclass

@@ -23,7 +23,7 @@ from rich.console import Console
 
 from sg_nerfstudio.registration.session import RegistrationJob, default_preset, fails, run_job
 from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
-from sg_nerfstudio.scripts.cli import cli_main
+from sg_nerfstudio.errors import cli_main
 
 
 def parse_args(argv: list[str], console: Console) -> RegistrationJob:

@@ -16,7 +16,7 @@ from typing import Optional
 import tyro
 from rich.console import Console
 
-from sg_nerfstudio.scripts.cli import cli_main
+from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.viewer.session import ViewRegistrationArgs, start_viewer
 
 

@@ -1317,10 +1317,12 @@ def test_a_registration_with_one_anchored_photo_searches_the_scale_it_leaves_fre
     assert after < 0.3 * before, (before, after, result.scale_search)
 
 
-def test_the_verdicts_probes_render_the_model_culled_at_the_result(reference, meta, ground_truth, monkeypatch):
+@pytest.mark.parametrize("teacher_input_size, held", [(256, True), (128, True), (64, False)])
+def test_the_verdicts_probes_render_the_model_culled_at_the_result(teacher_input_size, held, reference, meta, ground_truth, monkeypatch):
     """The final losses and the 12 probes around the result all render the one model culled (and coarsened) at the
     result: no probe culls again (probes in opposite directions used to move the cull back and forth, seconds each
-    on a reference of millions of Gaussians, and compared the result with models merged at other poses)."""
+    on a reference of millions of Gaussians, and compared the result with models merged at other poses). Probes
+    beyond the re-cull rotation (an 8-cell grid: about 7°) cull for their poses."""
     seen = {}
     original = optimize.gather_evidence
 
@@ -1332,6 +1334,34 @@ def test_the_verdicts_probes_render_the_model_culled_at_the_result(reference, me
 
     monkeypatch.setattr(optimize, "gather_evidence", spying)
     start = perturbed_start(meta, ground_truth, 7, 2.0, 0.02, 0.02)
-    register(reference, meta, start, RegistrationSettings(**{**FAST, "steps": 3, "objective": "teacher-on-render"}))
-    assert seen["after"] == seen["before"]
-    np.testing.assert_array_equal(seen["pose"].matrix, seen["final"].matrix)
+    settings = RegistrationSettings(**{**FAST, "steps": 3, "objective": "teacher-on-render", "teacher_input_size": teacher_input_size})
+    register(reference, meta, start, settings)
+    if held:
+        assert seen["after"] == seen["before"]
+        np.testing.assert_array_equal(seen["pose"].matrix, seen["final"].matrix)
+    else:
+        assert seen["after"] > seen["before"]
+
+
+def test_a_model_held_at_the_result_renders_every_probe_as_the_whole_model_does(reference, meta, ground_truth):
+    """What `held_for_probes` relies on: the model culled at the result renders the verdict's 12 probes (here the tiny
+    reference's 16-cell grid, probes of 3-4°, the largest the hold takes) as the whole model does (level of detail off:
+    this checks the cull alone)."""
+    settings = RegistrationSettings(**FAST, objective="teacher-on-render", level_of_detail=0.0)
+    objective = build_objective(reference, settings)
+    photos = prepare_photos(reference, meta, settings, objective)
+    culled = PhotoLosses(reference, photos, objective, settings, 0.01)
+    whole = PhotoLosses(reference, photos, objective, settings, 0.01, cull=False)
+    result = (reference.world_to_dataparser @ perturbed_start(meta, ground_truth, 17, 1.0, 0.01, 0.01)).to_torch()
+    rotation, translation = verdict.probe_sizes(meta, photos, objective.teacher.grid_size, result.numpy())
+    assert 2.0 < np.degrees(rotation) <= optimize.MAX_ROTATION_DEG
+    centre = torch.from_numpy(meta.centroid_under(result.numpy()))
+    indices = list(range(len(photos)))
+    with culled.visible.held_at(result), torch.no_grad():
+        for delta in verdict.probes(rotation, translation):
+            probe = Sim3.update(delta, centre) @ result
+            ours, ours_coverage = culled(probe, indices)
+            full, full_coverage = whole(probe, indices)
+            torch.testing.assert_close(torch.stack(ours), torch.stack(full), rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(ours_coverage, full_coverage, rtol=1e-5, atol=1e-6)
+    assert culled.visible.culls == 1 and culled.visible.subset.count < reference.count

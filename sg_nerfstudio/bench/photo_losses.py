@@ -129,7 +129,7 @@ def run(args: Args) -> None:
 
 
 def entrypoint() -> None:
-    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))  # a wrong benchmark layout, reference or preset: its one sentence, exit 1
+    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))
 
 
 if __name__ == "__main__":

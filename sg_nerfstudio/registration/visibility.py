@@ -91,8 +91,8 @@ class VisibleSubset:
     def held_at(self, meta_to_dataparser: Sim3) -> Iterator[None]:
         """Within it every render uses the model culled (and coarsened) at exactly this pose, whatever pose it is for.
 
-        For poses within the cull's bounds of it (MAX_ROTATION_DEG, MAX_SHIFT), which the caller ensures: the
-        verdict's probes one teacher cell around the result. Without it, probes in opposite directions each moved
+        For poses whose views stay inside the widened frusta of this one, which the caller ensures
+        (`optimize.held_for_probes`: the verdict's probes, one teacher cell around the result). Without it, probes in opposite directions each moved
         the cull (a probe's shift is about one cell's angle times the depth, 3% for fast-cpu, at MAX_SHIFT), and on
         a reference of millions of Gaussians each cull merges the level of detail again (seconds), and each probe
         was compared with the result under a model merged at another pose."""

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from sg_nerfstudio.registration.level_of_detail import coarsen, distinct_row_ids, footprint_cells, merge, plan_merge
+from sg_nerfstudio.geometry.frames import viewmat
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.visibility import MAX_ROTATION_DEG, MAX_VOXEL_DOUBLINGS, CullingCamera, VisibleSubset
@@ -155,3 +156,23 @@ def test_distinct_row_ids_number_rows_as_unique_over_rows_does(spread):
     keys = torch.cat([keys, keys[:500]])  # repeated rows share an id
     assert torch.equal(distinct_row_ids(keys), torch.unique(keys, dim=0, return_inverse=True)[1])
     assert distinct_row_ids(keys[:0]).shape == (0,)
+
+
+def test_a_held_cull_renders_probes_at_the_hold_bound_as_the_whole_model():
+    """`optimize.held_for_probes`' premise: the model culled at a pose renders the camera turned by the re-cull rotation,
+    or moved sideways by that angle times the depth, exactly as the whole model does (a plane reaching past the view)."""
+    wide = textured_plane(20_000, seed=2)
+    wide = model_of(wide.means * torch.tensor([6.0, 6.0, 1.0]), wide.covars, wide.opacities, wide.colors)  # x, y in [-6, 6]
+    viewmats, Ks, width, height = camera()
+    eye = CullingCamera(viewmats[0, :3].double(), Ks[0], width, height)
+    visible = VisibleSubset(wide, [eye])
+    with visible.held_at(Sim3.identity()):
+        held = visible.for_pose(Sim3.identity())
+    assert held.count < wide.count / 2  # the view holds less than half of the plane
+    sideways = 3.0 * math.tan(math.radians(MAX_ROTATION_DEG))  # the plane is at depth 3
+    probes = [turned_about_y(MAX_ROTATION_DEG), turned_about_y(-MAX_ROTATION_DEG),
+              Sim3.from_parts(1.0, np.eye(3), [sideways, 0.0, 0.0]), Sim3.from_parts(1.0, np.eye(3), [0.0, -sideways, 0.0])]
+    for probe in probes:
+        view = viewmat(probe.to_torch().move_camera(eye.cam_from_meta)).float()[None]
+        for ours, whole in zip(render(held, view, Ks, width, height), render(wide, view, Ks, width, height)):
+            torch.testing.assert_close(ours, whole)

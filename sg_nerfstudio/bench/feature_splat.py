@@ -19,10 +19,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.features import TeacherConfig
@@ -130,7 +130,7 @@ def run(args: Args) -> dict:
 
 
 def entrypoint() -> None:
-    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))
+    sys.exit(cli_main(lambda: run(cli.parse(Args)) or 0))
 
 
 if __name__ == "__main__":

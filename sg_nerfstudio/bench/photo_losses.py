@@ -25,6 +25,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.bench.layout import BenchmarkScene, read_benchmark
 from sg_nerfstudio.bench.runs import trained_reference
 from sg_nerfstudio.errors import cli_main
@@ -129,7 +130,7 @@ def run(args: Args) -> None:
 
 
 def entrypoint() -> None:
-    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))
+    sys.exit(cli_main(lambda: run(cli.parse(Args)) or 0))
 
 
 if __name__ == "__main__":

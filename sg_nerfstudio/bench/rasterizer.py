@@ -25,10 +25,10 @@ from typing import Optional
 
 import numpy as np
 import torch
-import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.render import rasterize
@@ -145,7 +145,7 @@ def main(args: Args) -> None:
 
 
 def entrypoint() -> None:
-    sys.exit(cli_main(lambda: main(tyro.cli(Args)) or 0))
+    sys.exit(cli_main(lambda: main(cli.parse(Args)) or 0))
 
 
 if __name__ == "__main__":

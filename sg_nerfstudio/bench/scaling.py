@@ -54,10 +54,10 @@ from typing import Literal, Optional
 
 import numpy as np
 import torch
-import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.errors import InputError, cli_main
 
 MODES = {"today": (0.0, False), "new": (None, True)}
@@ -395,5 +395,5 @@ def main(args: Args) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "child":
-        sys.exit(cli_main(lambda: print(json.dumps(measure(tyro.cli(ChildArgs, args=sys.argv[2:])), default=float)) or 0))
-    sys.exit(cli_main(lambda: main(tyro.cli(Args)) or 0))
+        sys.exit(cli_main(lambda: print(json.dumps(measure(cli.parse(ChildArgs, args=sys.argv[2:])), default=float)) or 0))
+    sys.exit(cli_main(lambda: main(cli.parse(Args)) or 0))

@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-import tyro
 from rich.console import Console
 from rich.table import Table
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.bench.feature_splat import view_quality
 from sg_nerfstudio.bench.layout import read_scene
@@ -113,7 +113,7 @@ def training_table(rows: list[dict], steps: int, threads: int) -> Table:
 
 
 def entrypoint() -> None:
-    sys.exit(cli_main(lambda: run(tyro.cli(Args)) or 0))
+    sys.exit(cli_main(lambda: run(cli.parse(Args)) or 0))
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
@@ -140,7 +141,7 @@ def describe(record: dict) -> str:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    args = tyro.cli(BenchArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-bench")
+    args = cli.parse(BenchArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-bench")
 
     def body() -> int:
         run(args, Console())

@@ -22,10 +22,10 @@ from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
-import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.errors import InputError, cli_main
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.geometry.meta_image import load_meta_image
@@ -108,7 +108,7 @@ def run(args: DemoArgs, console: Console) -> int:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    args = tyro.cli(DemoArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-demo")
+    args = cli.parse(DemoArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-demo")
     return cli_main(lambda: run(args, Console()))
 
 

@@ -32,6 +32,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, InitResult, resolve_reference_source, rich_progress, set_colmap_verbosity
@@ -144,7 +145,7 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     def body() -> int:
         console = Console()
-        args = tyro.cli(InitBaselineArgs, args=argv, prog="sg-init-baseline")
+        args = cli.parse(InitBaselineArgs, args=argv, prog="sg-init-baseline")
         entries = run(args, console)
         console.print(f"Initial transforms and metrics.json in {args.output_dir}", soft_wrap=True)
         return 0 if any(e["outcome"].succeeded for e in entries) else 1

@@ -29,6 +29,7 @@ from rich.console import Console
 from rich.text import Text
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.scene import RealSceneSettings, build_real_scene
@@ -127,16 +128,16 @@ def main(argv: list[str] | None = None) -> int:
     known, rest = pre.parse_known_args(argv)
     console = Console(stderr=True)
     if any(arg == "--from-photos" or arg.startswith("--from-photos=") for arg in argv):
-        photo_args = tyro.cli(FromPhotosArgs, args=argv, prog="sg-make-scene --from-photos")
+        photo_args = cli.parse(FromPhotosArgs, args=argv, prog="sg-make-scene --from-photos")
         return cli_main(lambda: make_from_photos(photo_args, console))
     if known.preset in SUITES:
-        suite_args = tyro.cli(SuiteArgs, args=rest, prog=f"sg-make-scene --preset {known.preset}")
+        suite_args = cli.parse(SuiteArgs, args=rest, prog=f"sg-make-scene --preset {known.preset}")
         return cli_main(lambda: make_suite(known.preset, suite_args, console))
     if known.preset not in PRESETS:
         names = ", ".join([*PRESETS, *SUITES])
         console.print(Text(f"Unknown --preset {known.preset!r}; expected one of: {names}.", style="red"), soft_wrap=True)
         return 2
-    args = tyro.cli(
+    args = cli.parse(
         MakeSceneArgs,
         args=rest,
         default=MakeSceneArgs(output=Path("scene"), scene=PRESETS[known.preset]),

@@ -22,6 +22,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.meta_images import build_meta_images
 from sg_nerfstudio.photos.sfm import SfmSettings
@@ -92,7 +93,7 @@ def run(args: MetaImagesArgs, console: Console) -> int:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    args = tyro.cli(MetaImagesArgs, args=argv, prog="sg-meta-images")
+    args = cli.parse(MetaImagesArgs, args=argv, prog="sg-meta-images")
     console = Console(stderr=True)
     return cli_main(lambda: run(args, console))
 

@@ -21,6 +21,7 @@ from typing import Optional
 import tyro
 from rich.console import Console
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.registration.session import RegistrationJob, default_preset, fails, run_job
 from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
 from sg_nerfstudio.errors import cli_main
@@ -39,7 +40,7 @@ def parse_args(argv: list[str], console: Console) -> RegistrationJob:
         console.print(f"Registration preset: {preset} (no --config given; chosen for this device and reference).")
     settings = load_preset(preset) if preset else RegistrationSettings()
     default = RegistrationJob(load_config=tyro.MISSING, meta_image=tyro.MISSING, output_dir=tyro.MISSING, config=preset, settings=settings)
-    return tyro.cli(RegistrationJob, args=argv, default=default, prog="ns-register-meta", config=(tyro.conf.OmitArgPrefixes,))
+    return cli.parse(RegistrationJob, args=argv, default=default, prog="ns-register-meta", config=(tyro.conf.OmitArgPrefixes,))
 
 
 def main(argv: Optional[list[str]] = None) -> int:

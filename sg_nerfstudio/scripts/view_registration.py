@@ -13,9 +13,9 @@ import sys
 import time
 from typing import Optional
 
-import tyro
 from rich.console import Console
 
+from sg_nerfstudio import cli
 from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.viewer.session import ViewRegistrationArgs, start_viewer
 
@@ -35,7 +35,7 @@ def serve(args: ViewRegistrationArgs, console: Console) -> int:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    args = tyro.cli(ViewRegistrationArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-view-registration")
+    args = cli.parse(ViewRegistrationArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-view-registration")
     return cli_main(lambda: serve(args, Console()))
 
 

@@ -20,6 +20,7 @@ import pycolmap
 import pytest
 
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource, set_colmap_verbosity
+from sg_nerfstudio.initialisers.reference_cloud import ReferenceSourceError
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.registration.metrics import pose_errors
@@ -329,6 +330,15 @@ def test_baseline_cli_missing_reference_model_is_one_sentence_and_no_output(scen
     assert "Reference COLMAP model" in err and str(tmp_path / "nowhere") in err.replace("\n", "")
     assert err.strip().count("\n") == 0, err
     assert not out.exists()
+
+
+def test_a_truncated_reference_image_is_one_sentence(scene, tmp_path):
+    images = tmp_path / "images"
+    shutil.copytree(scene / "reference" / "images", images)
+    cut = sorted(images.iterdir())[0]
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    with pytest.raises(ReferenceSourceError, match=f"Reference image {cut} could not be read as an image .*; expected a complete JPEG or PNG"):
+        ReferenceSource(scene / "reference" / "colmap" / "sparse" / "0", images).load()
 
 
 def test_colmap_info_log_shows_only_when_verbose(capfd):

@@ -361,7 +361,7 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 
 @pytest.mark.parametrize("case", [
-    "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size",
+    "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
     "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
 def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
@@ -377,6 +377,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "missing_photo": "missing from",
         "too_few_photos": "at least 3 are needed",
         "wrong_size": "pixels but its COLMAP camera says",
+        "truncated_jpeg": "front_001.jpg could not be read as an image (image file is truncated",
         "negative_scale": "scale must be positive",
         "nan_init": "finite 4x4",
         "sees_nothing": "renders nothing",
@@ -402,6 +403,14 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     elif case == "wrong_size":
         photo = meta_dir / "images" / "front_001.png"
         cv2.imwrite(str(photo), cv2.resize(cv2.imread(str(photo)), (20, 20)))
+    elif case == "truncated_jpeg":  # OpenCV decodes the first half, fills the rest with grey and only warns
+        model = pycolmap.Reconstruction(str(meta_dir / "sparse" / "0"))
+        next(image for image in model.images.values() if image.name == "front_001.png").name = "front_001.jpg"
+        model.write_binary(str(meta_dir / "sparse" / "0"))
+        photo = meta_dir / "images" / "front_001.png"
+        jpeg = cv2.imencode(".jpg", cv2.imread(str(photo)))[1].tobytes()
+        (meta_dir / "images" / "front_001.jpg").write_bytes(jpeg[: len(jpeg) // 2])
+        photo.unlink()
     elif case in ("negative_scale", "nan_init"):
         matrix = np.eye(4)
         matrix[0, 0] = -1.0 if case == "negative_scale" else np.nan

@@ -330,12 +330,22 @@ def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
     return MetaImage(directory.name, directory, model_path, photos, reconstruction, extra)
 
 
+def decoded_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file, after decoding all of it.
+
+    A truncated JPEG fails here (PIL raises "image file is truncated"), where OpenCV and pycolmap, which read the photos
+    later, only print "Premature end of JPEG file" and fill the missing rows with grey, which would then be
+    registered as if they were the photo."""
+    with PILImage.open(path) as handle:
+        handle.load()
+        return handle.size
+
+
 def _check_size(path: Path, camera: pycolmap.Camera) -> None:
     try:
-        with PILImage.open(path) as handle:
-            width, height = handle.size
+        width, height = decoded_size(path)
     except Exception as error:
-        raise MetaImageError(f"Photo {path} could not be read as an image ({error}).") from None
+        raise MetaImageError(f"Photo {path} could not be read as an image ({error}); expected a complete JPEG or PNG.") from None
     if (width, height) != (camera.width, camera.height):
         raise MetaImageError(
             f"Photo {path} is {width}x{height} pixels but its COLMAP camera says {camera.width}x{camera.height}; "

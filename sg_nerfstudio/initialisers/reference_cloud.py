@@ -20,11 +20,10 @@ from typing import Callable
 
 import numpy as np
 import pycolmap
-from PIL import Image as PILImage
 
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.geometry.meta_image import holds_colmap_model
+from sg_nerfstudio.geometry.meta_image import decoded_size, holds_colmap_model
 from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, VerifiedMatcher
 from sg_nerfstudio.initialisers.retrieval import reference_pairs
 
@@ -71,10 +70,9 @@ class ReferenceSource:
 def _check_image_size(path: Path, camera: pycolmap.Camera) -> None:
     """Keypoints are only valid with the camera when the file has the camera's size."""
     try:
-        with PILImage.open(path) as handle:
-            size = handle.size
+        size = decoded_size(path)
     except Exception as error:
-        raise ReferenceSourceError(f"Reference image {path} could not be read as an image ({error}).") from None
+        raise ReferenceSourceError(f"Reference image {path} could not be read as an image ({error}); expected a complete JPEG or PNG.") from None
     if size != (camera.width, camera.height):
         raise ReferenceSourceError(
             f"Reference image {path} is {size[0]}x{size[1]} pixels but its COLMAP camera says {camera.width}x{camera.height}; "

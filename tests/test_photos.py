@@ -300,3 +300,20 @@ def test_a_dataset_without_the_model_colmap_looks_for_is_refused_before_anything
     with pytest.raises(DatasetInputError, match=expected):
         config.save_config()
     assert not runs.exists()
+
+
+def test_a_truncated_training_image_is_refused_before_anything_is_written(tiny_scene, tmp_path):
+    """nerfstudio's datamanager would decode it with a traceback, after ns-train wrote the run's config.yml."""
+    from sg_nerfstudio.features import TeacherConfig
+    from sg_nerfstudio.splat.datamanager import DatasetInputError
+    from sg_nerfstudio.splat.training import cpu_config
+
+    reference = tmp_path / "reference"
+    shutil.copytree(tiny_scene / "reference", reference)
+    cut = reference / "images" / "ring_003.png"
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    runs = tmp_path / "runs"
+    config = cpu_config(reference, runs, 2, TeacherConfig(name="offline", input_size=64, cache_dir=tmp_path / "cache"))
+    with pytest.raises(DatasetInputError, match=rf"Image {cut} of the COLMAP model .* could not be read as an image .*; expected a complete JPEG or PNG"):
+        config.save_config()
+    assert not runs.exists()

@@ -25,7 +25,7 @@ from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatama
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import FeatureCache, TeacherConfig, build_teacher, extract_all, teacher_feature_dim, teacher_grid_size
-from sg_nerfstudio.geometry.meta_image import holds_colmap_model
+from sg_nerfstudio.geometry.meta_image import decoded_size, holds_colmap_model
 
 PCA_SAMPLE_SIZE = 20000
 MIN_SEED_POINTS = 4
@@ -59,11 +59,46 @@ def check_colmap_model(config: "FeatureDatamanagerConfig") -> None:
 
 
 def check_dataset(config: "FeatureDatamanagerConfig") -> None:
-    """The checks that need no image read: the COLMAP model exists and has points to seed the Gaussians. Run by the
-    trainer config before nerfstudio writes anything (`method.FeatureSplatTrainerConfig.save_config`) and again by the
-    datamanager (for callers that build it directly)."""
+    """The COLMAP model exists, has points to seed the Gaussians, and every image of it that is on disk decodes. Run
+    by the trainer config before nerfstudio writes anything (`method.FeatureSplatTrainerConfig.save_config`) and
+    again by the datamanager (for callers that build it directly)."""
     check_colmap_model(config)
     check_seed_points(config)
+    check_images_decode(config)
+
+
+def check_images_decode(config: "FeatureDatamanagerConfig") -> None:
+    """Stop with one sentence on the first image the COLMAP model lists that is on disk but cannot be decoded whole (a
+    truncated JPEG or PNG): nerfstudio's datamanager otherwise fails on it with a traceback, after `ns-train` has
+    written the run's config.yml. Missing images are named later, by the datamanager (`_check_images_exist`)."""
+    parser = config.dataparser
+    if not hasattr(parser, "colmap_path") or not hasattr(parser, "images_path"):
+        return
+    data = Path(config.data) if config.data is not None else Path(parser.data)  # as FullImageDatamanager resolves it
+    model = data / parser.colmap_path
+    for name in colmap_image_names(model):
+        path = data / parser.images_path / name
+        if not path.is_file():
+            continue
+        try:
+            decoded_size(path)
+        except Exception as error:
+            raise DatasetInputError(
+                f"Image {path} of the COLMAP model {model} could not be read as an image ({error}); expected a complete JPEG "
+                "or PNG (replace the file, or remove the image from the model)."
+            ) from None
+
+
+def colmap_image_names(model: Path) -> list[str]:
+    """Names of the images a COLMAP model lists (images.bin or images.txt, read with nerfstudio's own parser, without
+    the points); [] when neither file exists."""
+    from nerfstudio.data.utils.colmap_parsing_utils import read_images_binary, read_images_text
+
+    if (model / "images.bin").is_file():
+        return [image.name for image in read_images_binary(model / "images.bin").values()]
+    if (model / "images.txt").is_file():
+        return [image.name for image in read_images_text(model / "images.txt").values()]
+    return []
 
 
 def check_seed_points(config: "FeatureDatamanagerConfig") -> None:

@@ -292,7 +292,8 @@ def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
     """Read and validate a meta-image; every problem is one MetaImageError sentence."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise MetaImageError(f"Meta-image directory {directory} does not exist.")
+        state = "is a file" if directory.exists() else "does not exist"
+        raise MetaImageError(f"Meta-image directory {directory} {state}; expected a directory holding images/ and a COLMAP model (sparse/0).")
     model_path = find_model(directory)
     try:
         reconstruction = pycolmap.Reconstruction(str(model_path))

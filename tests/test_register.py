@@ -362,7 +362,7 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 @pytest.mark.parametrize("case", [
     "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
-    "meta_is_a_file", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
+    "meta_is_a_file", "nan_camera", "nan_point", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
 def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
     meta_dir = copy_meta(tiny_scene, tmp_path)
@@ -379,6 +379,8 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "wrong_size": "pixels but its COLMAP camera says",
         "truncated_jpeg": "front_001.jpg could not be read as an image (image file is truncated",
         "meta_is_a_file": "front is a file; expected a directory holding images/",
+        "nan_camera": "has camera parameters [nan,",
+        "nan_point": "observes 3D points that are not finite",
         "negative_scale": "scale must be positive",
         "nan_init": "finite 4x4",
         "sees_nothing": "renders nothing",
@@ -404,6 +406,15 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     elif case == "wrong_size":
         photo = meta_dir / "images" / "front_001.png"
         cv2.imwrite(str(photo), cv2.resize(cv2.imread(str(photo)), (20, 20)))
+    elif case in ("nan_camera", "nan_point"):
+        model = pycolmap.Reconstruction(str(meta_dir / "sparse" / "0"))
+        if case == "nan_camera":
+            camera = next(iter(model.cameras.values()))
+            camera.params = [np.nan, *camera.params[1:]]
+        else:
+            point = next(iter(model.points3D.values()))
+            point.xyz = [np.nan, 0.0, 0.0]
+        model.write_binary(str(meta_dir / "sparse" / "0"))
     elif case == "meta_is_a_file":
         shutil.rmtree(meta_dir)
         meta_dir.write_text("not a meta-image")

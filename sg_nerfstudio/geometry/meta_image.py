@@ -322,6 +322,7 @@ def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
             raise MetaImageError(f"Photo {image.name} uses camera model {camera.model.name}; expected a perspective model.")
         pose = image.cam_from_world().matrix()
         points = np.array([reconstruction.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()]).reshape(-1, 3)
+        _check_finite(image.name, model_path, camera, pose, points)
         _check_size(images_dir / image.name, camera)
         photos.append(Photo(image.name, images_dir / image.name, camera, pose, points @ pose[:, :3].T + pose[:, 3]))
     if len(photos) < min_photos:
@@ -343,6 +344,21 @@ def decoded_size(path: Path) -> tuple[int, int]:
         handle.draft(handle.mode, (max(1, size[0] // 8), max(1, size[1] // 8)))  # JPEG only; other formats ignore it
         handle.load()
         return size
+
+
+def _check_finite(name: str, model_path: Path, camera: pycolmap.Camera, pose: Array, points: Array) -> None:
+    """A photo's camera, pose and observed points as numbers a registration can use (a NaN, an infinity or a focal
+    length <= 0 would otherwise surface as an error deep inside pycolmap or a NaN transform)."""
+    focal = np.asarray(camera.params)[camera.focal_length_idxs()]
+    if not np.all(np.isfinite(camera.params)) or not np.all(focal > 0):
+        raise MetaImageError(
+            f"Photo {name} of {model_path} has camera parameters {np.asarray(camera.params).tolist()} ({camera.model.name}); "
+            "expected finite values and positive focal lengths."
+        )
+    if not np.all(np.isfinite(pose)):
+        raise MetaImageError(f"Photo {name} of {model_path} has a pose that is not finite; expected a finite rotation and translation.")
+    if not np.all(np.isfinite(points)):
+        raise MetaImageError(f"Photo {name} of {model_path} observes 3D points that are not finite; expected finite point coordinates.")
 
 
 def _check_size(path: Path, camera: pycolmap.Camera) -> None:

@@ -1276,6 +1276,22 @@ def test_a_reference_trained_with_relative_paths_loads_from_any_directory(traine
         open_trained_run(run_dir / "config.yml")
 
 
+def test_a_checkpoint_with_gaussians_that_are_not_finite_is_one_sentence(trained, tmp_path):
+    """A diverged training: the CPU rasterizer would silently drop such Gaussians."""
+    from sg_nerfstudio.splat.trained import ReferenceModelError, load_pipeline, open_trained_run
+
+    _, _, config = trained
+    run_dir = tmp_path / "run"
+    shutil.copytree(config.get_base_dir(), run_dir)
+    (checkpoint,) = (run_dir / "nerfstudio_models").glob("*.ckpt")
+    state = torch.load(checkpoint, weights_only=False)
+    scales = next(key for key in state["pipeline"] if key.endswith("gauss_params.scales"))
+    state["pipeline"][scales][:3] = float("inf")
+    torch.save(state, checkpoint)
+    with pytest.raises(ReferenceModelError, match=r"holds 3 of \d+ Gaussians whose scales are not finite"):
+        load_pipeline(open_trained_run(run_dir / "config.yml"), "cpu", "inference")
+
+
 class _CentreLosses:
     """Stands in for PhotoLosses: each photo's loss is the squared distance of its moved camera centre from where
     `truth` puts it (what a dense objective that sees the scale would prefer)."""

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 import yaml
 
 from sg_nerfstudio.errors import InputError
@@ -137,4 +138,17 @@ def load_pipeline(run: TrainedRun, device: str, test_mode: str):
     pipeline = run.config.pipeline.setup(device=device, test_mode=test_mode)
     pipeline.eval()
     checkpoint_path, step = eval_load_checkpoint(run.config, pipeline)
+    check_finite_gaussians(pipeline.model, Path(checkpoint_path))
     return pipeline, Path(checkpoint_path), step
+
+
+def check_finite_gaussians(model, checkpoint_path: Path) -> None:
+    """ReferenceModelError when a Gaussian parameter of the loaded model is NaN or infinite (a training that diverged):
+    the CPU rasterizer would silently drop such Gaussians and gsplat's CUDA kernels may not."""
+    for name, parameter in model.gauss_params.items():
+        finite = torch.isfinite(parameter.detach()).reshape(parameter.shape[0], -1).all(dim=1)
+        if not bool(finite.all()):
+            raise ReferenceModelError(
+                f"Checkpoint {checkpoint_path} holds {int((~finite).sum())} of {parameter.shape[0]} Gaussians whose {name} are "
+                "not finite (NaN or infinite); expected a model whose training did not diverge (train it again)."
+            )

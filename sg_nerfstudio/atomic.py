@@ -9,6 +9,24 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
+from sg_nerfstudio.errors import InputError
+
+
+class OutputPathError(InputError):
+    """An output directory that cannot be created where it was asked for."""
+
+
+def check_output_path(path: Path) -> None:
+    """OutputPathError when `path`, a directory to create or fill, or a folder above it exists as something other than
+    a directory (a file): creating it would fail with a traceback, and replacing it would delete the user's file."""
+    path = Path(path)
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            if candidate.is_dir():
+                return
+            where = "is a file" if candidate == path else f"cannot be created: {candidate} is a file"
+            raise OutputPathError(f"Output directory {path} {where}; expected a directory there, or a path that does not exist yet.")
+
 
 @contextmanager
 def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
@@ -16,9 +34,11 @@ def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
     removed and `target` is left as it was.
 
     Raises:
+        OutputPathError: `target` or a folder above it is a file.
         FileExistsError: `target` exists and `overwrite` is False (checked before and after the work).
     """
     target = Path(target)
+    check_output_path(target)
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} already exists")
     target.parent.mkdir(parents=True, exist_ok=True)

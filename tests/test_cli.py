@@ -37,3 +37,17 @@ def test_register_meta_help_wraps_each_flag_description_as_one_paragraph(monkeyp
     assert "the reference COLMAP model" in line
     (line,) = [line for line in lines if "the flags below override" in line]
     assert "single values" in line
+
+
+@pytest.mark.parametrize("layout", ["target", "parent"])
+def test_an_output_directory_where_a_file_is_is_one_sentence_and_the_file_stays(layout, tmp_path):
+    from sg_nerfstudio.atomic import OutputPathError, atomic_directory
+
+    user_file = tmp_path / "results"
+    user_file.write_text("the user's notes")
+    target = user_file if layout == "target" else user_file / "scene"
+    expected = "is a file" if layout == "target" else f"cannot be created: {user_file} is a file"
+    with pytest.raises(OutputPathError, match=f"Output directory {target} {expected}; expected a directory there"):
+        with atomic_directory(target, overwrite=True):
+            pass
+    assert user_file.read_text() == "the user's notes" and sorted(p.name for p in tmp_path.iterdir()) == ["results"]

@@ -362,7 +362,7 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 @pytest.mark.parametrize("case", [
     "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
-    "meta_is_a_file", "nan_camera", "nan_point", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
+    "meta_is_a_file", "nan_camera", "nan_point", "output_is_a_file", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
 def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
     meta_dir = copy_meta(tiny_scene, tmp_path)
@@ -381,6 +381,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "meta_is_a_file": "front is a file; expected a directory holding images/",
         "nan_camera": "has camera parameters [nan,",
         "nan_point": "observes 3D points that are not finite",
+        "output_is_a_file": "out is a file; expected a directory there",
         "negative_scale": "scale must be positive",
         "nan_init": "finite 4x4",
         "sees_nothing": "renders nothing",
@@ -415,6 +416,8 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
             point = next(iter(model.points3D.values()))
             point.xyz = [np.nan, 0.0, 0.0]
         model.write_binary(str(meta_dir / "sparse" / "0"))
+    elif case == "output_is_a_file":
+        (tmp_path / "out").write_text("the user's file")
     elif case == "meta_is_a_file":
         shutil.rmtree(meta_dir)
         meta_dir.write_text("not a meta-image")
@@ -447,7 +450,10 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     assert code == 1
     assert expected in err, err
     assert err.strip().count("\n") == 0, err
-    assert not out.exists()
+    if case == "output_is_a_file":
+        assert out.read_text() == "the user's file"
+    else:
+        assert not out.exists()
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # inputs untouched
 
 

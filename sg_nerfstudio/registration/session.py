@@ -28,6 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
+from sg_nerfstudio.atomic import check_output_path
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image, radial_k1_index
 from sg_nerfstudio.geometry.sim3 import Sim3
@@ -142,6 +143,7 @@ def read_ground_truths(paths: tuple[Path, ...], count: int) -> list[Optional[Sim
 
 def check_targets(job: RegistrationJob, names: list[str]) -> None:
     """Result directories are free (or --overwrite) and no meta-image name collides with merged/ or reference/."""
+    check_output_path(job.output_dir)
     if len(set(names)) != len(names):
         raise ArgumentError(f"Meta-image directories must have distinct names (results go to <output-dir>/<name>), got {names}.")
     targets = [job.output_dir / name for name in names] + ([job.output_dir / MERGED] if len(names) > 1 else [])

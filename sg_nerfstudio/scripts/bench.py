@@ -25,6 +25,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio import cli
+from sg_nerfstudio.atomic import check_output_path
 from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
@@ -99,6 +100,7 @@ def run(args: BenchArgs, console: Console) -> Path:
         noise_samples=args.noise_samples, alternatives={Path(name).stem: load_preset(name) for name in args.compare_config},
         preset=Path(args.config).stem, anchored_photos=args.anchored_photos,
     )
+    check_output_path(args.output)
     args.output.mkdir(parents=True, exist_ok=True)
     train_seconds = {}
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())

@@ -26,6 +26,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio import cli
+from sg_nerfstudio.atomic import check_output_path
 from sg_nerfstudio.errors import InputError, cli_main
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.geometry.meta_image import load_meta_image
@@ -86,6 +87,7 @@ def run(args: DemoArgs, console: Console) -> int:
     started = time.perf_counter()
     set_threads(args.threads)
     settings = load_preset(args.config)
+    check_output_path(args.output)
     if args.output.exists() and any(args.output.iterdir()):
         raise InputError(f"Demo output {args.output} exists and is not empty; choose another --output or remove it.")
     args.output.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,7 @@
 """Command-line parsing for every `sg-*` command and benchmark module: tyro, with field help that reads as prose.
 
 Our settings are documented the way tyro asks, by a docstring under each dataclass field, and most of those
-docstrings run over several source lines. tyro (1.0.17 with docstring_parser 0.18, and 0.9.35 before it) joins a
+docstrings run over several source lines. tyro (1.0.17 with docstring_parser 0.18; 0.9.35 with 0.17 alike) joins a
 docstring's lines into one paragraph only where a continuation line starts with a letter, and it tests that before
 removing the class body's indentation, so every continuation line keeps its line break: `ns-register-meta --help`
 printed "'colmap' (photos registered into" and "the reference COLMAP model, ..." as two lines of a paragraph, at

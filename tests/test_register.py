@@ -362,7 +362,7 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 @pytest.mark.parametrize("case", [
     "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
-    "meta_is_a_file", "nan_camera", "nan_point", "output_is_a_file", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
+    "meta_is_a_file", "nan_camera", "nan_point", "output_is_a_file", "nan_lr_flag", "negative_steps_preset", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
 def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
     meta_dir = copy_meta(tiny_scene, tmp_path)
@@ -382,6 +382,8 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "nan_camera": "has camera parameters [nan,",
         "nan_point": "observes 3D points that are not finite",
         "output_is_a_file": "out is a file; expected a directory there",
+        "nan_lr_flag": "Registration setting lr (--lr) must be a finite number above 0, got nan.",
+        "negative_steps_preset": "steps must be a whole number of 0 or more, got -3.",
         "negative_scale": "scale must be positive",
         "nan_init": "finite 4x4",
         "sees_nothing": "renders nothing",
@@ -416,6 +418,12 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
             point = next(iter(model.points3D.values()))
             point.xyz = [np.nan, 0.0, 0.0]
         model.write_binary(str(meta_dir / "sparse" / "0"))
+    elif case == "nan_lr_flag":
+        extra = ["--lr", "nan"]
+    elif case == "negative_steps_preset":
+        preset = tmp_path / "preset.yaml"
+        preset.write_text("steps: -3\n")
+        extra = ["--config", str(preset)]
     elif case == "output_is_a_file":
         (tmp_path / "out").write_text("the user's file")
     elif case == "meta_is_a_file":

@@ -33,7 +33,7 @@ from sg_nerfstudio.registration.objectives import (
 )
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
-from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.registration.settings import RegistrationSettings, check_ranges
 from sg_nerfstudio.registration import other_minimum
 from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence, probe_sizes
 from sg_nerfstudio.registration.visibility import MAX_ROTATION_DEG
@@ -204,6 +204,7 @@ def register(
     the given cameras onto the moved ones (`geometry.alignment.align_cameras`).
     """
     started = time.perf_counter()
+    check_ranges(settings)
     check_robust_settings(settings)
     objective = objective or build_objective(reference, settings)
     world_to_ns = reference.world_to_dataparser

@@ -41,7 +41,7 @@ from sg_nerfstudio.registration.optimize import RegistrationResult, register, to
 from sg_nerfstudio.registration.outputs import registered_reconstruction, write_outputs
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import check_robust_settings
-from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.registration.settings import RegistrationSettings, check_ranges
 from sg_nerfstudio.registration.verdict import SEVERITY
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.splat.trained import read_trainer_config
@@ -159,6 +159,7 @@ def check_targets(job: RegistrationJob, names: list[str]) -> None:
 def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     """Register every meta-image of the job, write its outputs and (for several) merged/; see the module docstring."""
     read_trainer_config(job.load_config)  # fail fast on a wrong config, before heavy work
+    check_ranges(job.settings)
     check_robust_settings(job.settings)
     check_objective_settings(job.settings)
     set_threads(job.threads)

@@ -10,6 +10,7 @@ coarse-to-fine stages and start hypotheses, for starts 10-30° off). Every comma
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -176,6 +177,47 @@ class RegistrationSettings:
     backend: Literal["auto", "gsplat", "numba", "torch"] = "auto"
 
 
+class SettingsRangeError(InputError):
+    """A registration setting (a flag or a preset's key) outside the values it can take."""
+
+
+COUNTS = ("steps", "images_per_step", "pyramid_steps", "hypotheses", "keypoint_prealign_steps", "camera_fit_iterations",
+          "refine_steps", "seed", "prealigned_steps")
+"""Whole numbers >= 0 (None allowed where the default is None)."""
+POSITIVE = ("lr", "adam_eps", "render_scale", "near_plane", "refine_lr", "photo_pose_prior_scale", "lr_final", "prealigned_lr",
+            "teacher_input_size")
+"""Numbers > 0 (None allowed where the default is None)."""
+NON_NEGATIVE = ("hypothesis_deg", "level_of_detail", "keypoint_weight")
+"""Numbers >= 0."""
+
+
+def check_ranges(settings: RegistrationSettings, preset: Optional[str] = None) -> None:
+    """SettingsRangeError naming the first numeric setting that is not a finite number in its range (a NaN learning
+    rate, a negative step count, a step count of 2.5 or "100" from a preset), and the `preset` it came from when
+    given; the robust loss's own ranges are `robust.check_robust_settings`'."""
+
+    def setting(name: str) -> str:
+        return f"Registration preset {preset}: {name}" if preset else f"Registration setting {name} (--{name.replace('_', '-')})"
+
+    for name in COUNTS + POSITIVE + NON_NEGATIVE:
+        value = getattr(settings, name)
+        if value is None and getattr(RegistrationSettings, name, 0) is None:
+            continue
+        whole = name in COUNTS or name == "teacher_input_size"
+        is_number = isinstance(value, int) if whole else isinstance(value, (int, float))
+        if isinstance(value, bool) or not is_number or not math.isfinite(value) or value < 0 or (name in POSITIVE and value == 0):
+            kind = "a whole number" if whole else "a finite number"
+            bound = "above 0" if name in POSITIVE else "of 0 or more"
+            raise SettingsRangeError(f"{setting(name)} must be {kind} {bound}, got {value!r}.")
+    kept = settings.hypotheses_kept
+    if not isinstance(kept, int) or isinstance(kept, bool) or kept < 1:
+        raise SettingsRangeError(f"{setting('hypotheses_kept')} must be 1 or more, got {settings.hypotheses_kept!r}.")
+    if any(not isinstance(factor, int) or factor < 2 for factor in settings.pyramid):
+        raise SettingsRangeError(f"{setting('pyramid')} must list whole numbers of 2 or more, got {list(settings.pyramid)}.")
+    if any(not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0 for scale in settings.hypothesis_scales):
+        raise SettingsRangeError(f"{setting('hypothesis_scales')} must list numbers above 0, got {list(settings.hypothesis_scales)}.")
+
+
 def read_preset_text(name_or_path: str | Path) -> tuple[str, str]:
     """(where it was found, YAML text) of a preset name (see PRESETS) or a path; PresetError when neither exists."""
     if str(name_or_path) in PRESETS:
@@ -200,4 +242,6 @@ def load_preset(name_or_path: str | Path) -> RegistrationSettings:
     unknown = sorted(set(values) - known)
     if unknown:
         raise PresetError(f"Registration preset {where} has unknown keys {unknown}; expected some of {sorted(known)}.")
-    return RegistrationSettings(**values)
+    settings = RegistrationSettings(**values)
+    check_ranges(settings, where)
+    return settings

@@ -158,6 +158,9 @@ def test_strecha_camera_file(tmp_path):
     path.write_text("\n".join(lines[:5]))
     with pytest.raises(CameraFileError, match="Strecha format"):
         read_strecha_camera(path)
+    path.write_text("\n".join([lines[0], lines[1], lines[2], lines[3], lines[4], lines[5], lines[6], "nan -2 3", lines[8]]) + "\n")
+    with pytest.raises(CameraFileError, match="holds values that are not finite"):  # passed the rotation check before
+        read_strecha_camera(path)
 
 
 def test_ground_truth_cameras_turned_to_the_sfm_principal_point():

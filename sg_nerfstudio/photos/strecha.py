@@ -65,6 +65,8 @@ def read_strecha_camera(path: Path) -> StrechaCamera:
             f"Camera file {path} is not in the Strecha format (K 3x3, distortion, R 3x3, t, w h; see "
             f"sg_nerfstudio/photos/strecha.py) ({type(error).__name__})."
         ) from None
+    if not all(np.isfinite(values).all() for values in (K, distortion, rotation, centre)) or not np.all(K[[0, 1], [0, 1]] > 0):
+        raise CameraFileError(f"Camera file {path} holds values that are not finite or focal lengths <= 0; expected a calibrated camera (K, R, t).")
     if np.abs(distortion).max() > 1e-9:
         raise CameraFileError(f"Camera file {path} has non-zero distortion {distortion.tolist()}; expected undistorted images (zeros).")
     if abs(np.linalg.det(rotation) - 1.0) > 1e-3:

@@ -28,6 +28,14 @@ def check_output_path(path: Path) -> None:
             raise OutputPathError(f"Output directory {path} {where}; expected a directory there, or a path that does not exist yet.")
 
 
+def check_new_output_directory(path: Path, overwrite: bool) -> None:
+    """`check_output_path`, and OutputPathError when `path` exists and `overwrite` is not given (the commands that create
+    their output directory whole)."""
+    check_output_path(path)
+    if Path(path).exists() and not overwrite:
+        raise OutputPathError(f"Output directory {path} already exists; pass --overwrite to replace it.")
+
+
 @contextmanager
 def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of `target` to fill; on success it replaces `target`, on any error it is

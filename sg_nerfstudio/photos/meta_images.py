@@ -22,14 +22,9 @@ from typing import Callable, Optional
 
 import pycolmap
 
-from sg_nerfstudio.atomic import atomic_directory, check_output_path
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
 from sg_nerfstudio.photos.collection import list_photos, prepare_photos
 from sg_nerfstudio.photos.sfm import ReconstructionError, SfmResult, SfmSettings, reconstruct
-
-
-class MetaImageOutputError(InputError):
-    """An output directory that cannot be written."""
 
 
 @dataclass(frozen=True)
@@ -65,9 +60,7 @@ def build_meta_images(
     """Run SfM on the photo folder `photos` and write one meta-image per model into `output` (see module doc)."""
     started = time.perf_counter()
     sources = list_photos(photos)
-    check_output_path(output)
-    if Path(output).exists() and not overwrite:
-        raise MetaImageOutputError(f"Output directory {output} already exists; pass --overwrite to replace it.")
+    check_new_output_directory(output, overwrite)
     with atomic_directory(output, overwrite=overwrite) as staging:
         working = staging / "sfm" / "images"
         prepared = prepare_photos(sources, working, max_size, on_photo)

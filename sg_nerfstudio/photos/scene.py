@@ -47,7 +47,7 @@ import pycolmap
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from sg_nerfstudio.atomic import atomic_directory, check_output_path
+from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.alignment import CameraAlignment, align_cameras, camera_centres, camera_residuals
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
@@ -132,9 +132,7 @@ def build_real_scene(
     if settings.reference_every < 2:
         raise RealSceneError(f"reference_every must be at least 2 (1 would leave no photo for meta-images), got {settings.reference_every}.")
     sources = list_photos(photos)
-    check_output_path(output)
-    if Path(output).exists() and not overwrite:
-        raise RealSceneError(f"Output directory {output} already exists; pass --overwrite to replace it.")
+    check_new_output_directory(output, overwrite)
     with atomic_directory(output, overwrite=overwrite) as root:
         work = root / "work"
         stage(f"reading {len(sources)} photos")

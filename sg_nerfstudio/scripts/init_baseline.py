@@ -33,7 +33,7 @@ from rich.table import Table
 from rich.text import Text
 
 from sg_nerfstudio import cli
-from sg_nerfstudio.atomic import atomic_directory, check_output_path
+from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, InitResult, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
@@ -68,9 +68,7 @@ class InitBaselineArgs:
 
 
 def run(args: InitBaselineArgs, console: Console) -> list[dict]:
-    check_output_path(args.output_dir)
-    if args.output_dir.exists() and not args.overwrite:
-        raise ArgumentError(f"Output directory {args.output_dir} exists; pass --overwrite to replace it.")
+    check_new_output_directory(args.output_dir, args.overwrite)
     source = resolve_reference_source(args.load_config, args.reference_colmap, args.reference_images)
     metas = [load_meta_image(path) for path in args.meta_image]
     names = [meta.name for meta in metas]

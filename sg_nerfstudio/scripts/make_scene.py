@@ -30,11 +30,11 @@ from rich.text import Text
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio import cli
-from sg_nerfstudio.atomic import atomic_directory, check_output_path
+from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.scene import RealSceneSettings, build_real_scene
 from sg_nerfstudio.errors import cli_main
-from sg_nerfstudio.synthetic import PRESETS, SceneConfig, SceneGenerationError, generate_scene
+from sg_nerfstudio.synthetic import PRESETS, SceneConfig, generate_scene
 from sg_nerfstudio.synthetic.generator import SUITES
 
 
@@ -104,9 +104,7 @@ def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
 
 def make_suite(name: str, args: SuiteArgs, console: Console) -> int:
     """Write every scene of the suite `name` into args.output, atomically as a whole."""
-    check_output_path(args.output)
-    if args.output.exists() and not args.overwrite:
-        raise SceneGenerationError(f"Output directory {args.output} already exists; pass --overwrite to replace it.")
+    check_new_output_directory(args.output, args.overwrite)
     manifest = {"suite": name, "scenes": []}
     with atomic_directory(args.output, overwrite=args.overwrite) as staging, scene_progress(console) as progress:
         for scene_name, config in SUITES[name].items():

@@ -27,7 +27,7 @@ import numpy as np
 import pycolmap
 from rich.progress import Progress
 
-from sg_nerfstudio.atomic import atomic_directory, check_output_path
+from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.synthetic.appearance import (
     apply_camera_effects, draw_occluders, flat_lighting, random_look, sun_lighting,
@@ -286,9 +286,7 @@ def generate_scene(config: SceneConfig, output: Path, overwrite: bool = False, p
     """Generate the scene into `output` (atomically) and return the manifest written to scene.json."""
     validate(config)
     output = Path(output)
-    check_output_path(output)
-    if output.exists() and not overwrite:
-        raise SceneGenerationError(f"Output directory {output} already exists; pass --overwrite to replace it.")
+    check_new_output_directory(output, overwrite)
     with atomic_directory(output, overwrite=overwrite) as staging:
         return _generate_into(config, staging, progress)
 

@@ -11,6 +11,7 @@ missing images.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 from typing import Callable
 
 
@@ -23,6 +24,11 @@ class InputError(Exception):
 
     def __str__(self) -> str:
         return self.message
+
+
+def not_a_directory(path: Path) -> str:
+    """How a path that should be a directory is not one, for an InputError's sentence: "is a file" or "does not exist"."""
+    return "is a file" if Path(path).exists() else "does not exist"
 
 
 def install_input_error_hook() -> None:

@@ -93,10 +93,12 @@ def test_prepare_photos_applies_exif_grey_and_cap(tmp_path):
     assert Image.open(tmp_path / "out" / "grey.png").mode == "RGB"
 
 
-@pytest.mark.parametrize("case", ["missing", "empty", "two", "truncated", "no-model", "camera-model"])
+@pytest.mark.parametrize("case", ["missing", "a-file", "empty", "two", "truncated", "no-model", "camera-model"])
 def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     folder = tmp_path / "photos"
-    if case != "missing":
+    if case == "a-file":
+        folder.write_text("not a folder")
+    elif case != "missing":
         folder.mkdir()
     if case == "truncated":
         noise_photo(folder / "a.jpg", 0)
@@ -114,7 +116,7 @@ def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     model = ["--camera-model", "OPENCV_TYPO"] if case == "camera-model" else []
     assert meta_images_main([str(folder), "--output", str(output), "--threads", "1", *model]) == 1
     err = capfd.readouterr().err  # file-descriptor level: COLMAP's glog writes there, not through sys.stderr
-    expected = {"missing": "does not exist", "empty": "holds no JPEG or PNG", "two": f"{folder} holds 2 JPEG or PNG photo(s); expected at least 3", "truncated": "a.jpg could not be decoded",
+    expected = {"missing": "does not exist", "a-file": f"Photo folder {folder} is a file; expected a directory", "empty": "holds no JPEG or PNG", "two": f"{folder} holds 2 JPEG or PNG photo(s); expected at least 3", "truncated": "a.jpg could not be decoded",
                 "no-model": "formed no model", "camera-model": "'OPENCV_TYPO' is not a COLMAP camera model; expected one of SIMPLE_PINHOLE"}[case]
     assert expected in err and "Traceback" not in err
     assert "Failed to create any sparse model" not in err and "No images with matches" not in err  # the mapper's own lines

@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, not_a_directory
 from sg_nerfstudio.geometry.sim3 import Sim3
 
 REFERENCE_MODELS = (Path("colmap") / "sparse" / "0", Path("sparse") / "0")
@@ -61,7 +61,7 @@ def read_benchmark(directory: Path) -> list[BenchmarkScene]:
     """Every scene of the benchmark at `directory`, checked against the layout."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise BenchmarkLayoutError(f"Benchmark directory {directory} does not exist; expected <benchmark>/<scene>/reference and meta/ (see sg-bench --help).")
+        raise BenchmarkLayoutError(f"Benchmark directory {directory} {not_a_directory(directory)}; expected <benchmark>/<scene>/reference and meta/ (see sg-bench --help).")
     manifest = directory / "benchmark.json"
     if manifest.is_file():
         try:

@@ -18,7 +18,7 @@ import numpy as np
 import pycolmap
 from PIL import Image as PILImage
 
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, not_a_directory
 from sg_nerfstudio.geometry.sim3 import Sim3
 
 Array = np.ndarray
@@ -292,8 +292,7 @@ def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
     """Read and validate a meta-image; every problem is one MetaImageError sentence."""
     directory = Path(directory)
     if not directory.is_dir():
-        state = "is a file" if directory.exists() else "does not exist"
-        raise MetaImageError(f"Meta-image directory {directory} {state}; expected a directory holding images/ and a COLMAP model (sparse/0).")
+        raise MetaImageError(f"Meta-image directory {directory} {not_a_directory(directory)}; expected a directory holding images/ and a COLMAP model (sparse/0).")
     model_path = find_model(directory)
     try:
         reconstruction = pycolmap.Reconstruction(str(model_path))

@@ -15,7 +15,7 @@ from typing import Callable, Optional
 
 from PIL import Image, ImageOps
 
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, not_a_directory
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 
@@ -43,7 +43,7 @@ def list_photos(folder: Path) -> list[Path]:
     that names the user's folder (not a staging copy of it)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise PhotoFolderError(f"Photo folder {folder} does not exist; expected a directory of JPEG or PNG photos.")
+        raise PhotoFolderError(f"Photo folder {folder} {not_a_directory(folder)}; expected a directory of JPEG or PNG photos.")
     photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
     if not photos:
         raise PhotoFolderError(f"Photo folder {folder} holds no JPEG or PNG photo; expected at least {MIN_PHOTOS}.")

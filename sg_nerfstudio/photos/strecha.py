@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, not_a_directory
 
 Array = np.ndarray
 
@@ -78,7 +78,7 @@ def read_strecha_cameras(folder: Path, photo_names: list[str]) -> dict[str, Stre
     """The camera of each photo: `<folder>/<photo name>.camera`."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise CameraFileError(f"Camera folder {folder} does not exist; expected <photo name>.camera files (Strecha format).")
+        raise CameraFileError(f"Camera folder {folder} {not_a_directory(folder)}; expected <photo name>.camera files (Strecha format).")
     missing = [name for name in photo_names if not (folder / f"{name}.camera").is_file()]
     if missing:
         raise CameraFileError(f"Camera folder {folder} has no {missing[0]}.camera ({len(missing)} photo(s) without a camera); expected one per photo.")

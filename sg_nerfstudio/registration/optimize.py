@@ -436,9 +436,7 @@ def coarse_stages(reference: ReferenceModel, meta: MetaImage, settings: Registra
     many times larger in the photo), the learning rate multiplied by it and decaying tenfold within the stage."""
     stages = []
     main_size = teacher_input_size(objective_teacher_config(reference, settings))
-    for factor in sorted(settings.pyramid, reverse=True):
-        if factor < 2:
-            raise ValueError(f"Pyramid factors must be at least 2 (the main stage is factor 1), got {factor}.")
+    for factor in sorted(settings.pyramid, reverse=True):  # each >= 2 (settings.check_ranges, run by `register`)
         stage_settings = replace(settings, teacher_input_size=main_size // factor)
         objective = build_objective(reference, stage_settings)
         if objective.teacher.grid_size < MIN_COARSE_GRID:

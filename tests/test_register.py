@@ -29,7 +29,7 @@ from sg_nerfstudio.registration.objectives import (
 from sg_nerfstudio.registration.optimize import register
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import RobustAggregator, RobustSettingsError, TrimmingRule, check_robust_settings
-from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.registration.settings import RegistrationSettings, SettingsRangeError, check_ranges
 from sg_nerfstudio.scripts.register_meta import main as register_main
 
 FAST = dict(steps=150, lr=0.004, lr_final=0.0002, images_per_step=0, render_scale=2.0, seed=0)
@@ -222,6 +222,35 @@ def test_lts_ignores_the_worst_photos(reference, meta, ground_truth):
     worst = int(np.argmax(result.initial_losses))
     assert result.ignored_fraction[worst] == pytest.approx(1.0)
 
+
+
+def test_retrim_schedule_renders_only_the_counted_photos_between_re_decisions():
+    schedule = optimize.RetrimSchedule(5, RegistrationSettings(retrim_every=3), warmup_steps=2)
+    counted = np.array([True, False, True, False, True])
+    batches = []
+    for _ in range(8):
+        batch = schedule.next()
+        schedule.counted(batch, counted[batch] if len(batch) == 5 else np.ones(len(batch), bool))
+        batches.append((batch, schedule.left_out(batch)))
+    every, kept = ([0, 1, 2, 3, 4], []), ([0, 2, 4], [1, 3])
+    # warm-up (2 steps), then a re-decision every third step, the counted photos alone in between
+    assert batches == [every, every, every, kept, kept, every, kept, kept]
+    paper = optimize.RetrimSchedule(5, RegistrationSettings(), warmup_steps=0)
+    assert all(paper.next() == [0, 1, 2, 3, 4] for _ in range(4))
+    with pytest.raises(SettingsRangeError, match=r"retrim_every \(--retrim-every\) must be a whole number of 1 or more, got 0"):
+        check_ranges(RegistrationSettings(retrim_every=0))
+
+
+def test_retrimming_less_often_renders_less_and_ends_where_the_paper_rule_does(reference, meta, ground_truth):
+    start = perturbed_start(meta, ground_truth, 5, 3.0, 0.05, 0.05)
+    paper = register(reference, meta, start, RegistrationSettings(**{**FAST, "steps": 60}))
+    lazy = register(reference, meta, start, RegistrationSettings(**{**FAST, "steps": 60, "retrim_every": 4}))
+    photos = len(paper.photo_names)
+    assert len(paper.history) == 60 * photos and len(lazy.history) < 60 * photos
+    # every photo the paper's rule always ignored is ignored in every step of the lazy one too, rendered or not
+    np.testing.assert_array_equal(lazy.ignored_fraction[paper.ignored_fraction == 1.0], 1.0)
+    initial, ends = pose_errors(meta.poses, start, ground_truth), pose_errors(meta.poses, lazy.transform, paper.transform)
+    assert ends.rotation_deg < 0.1 * initial.rotation_deg and ends.translation < 0.1 * initial.translation, (initial, ends)
 
 def test_trimming_rules_drop_only_what_they_should():
     median_rule, outlier_rule = TrimmingRule("lts"), TrimmingRule("outlier-lts")

@@ -1,6 +1,6 @@
 """The registration loop: optimise one Sim(3) of a whole meta-image against the frozen reference model.
 
-Per step: choose the photos of the step (`BatchSchedule`), move their cameras by T = U(delta) o T0 in the
+Per step: choose the photos of the step (`RetrimSchedule`, `BatchSchedule`), move their cameras by T = U(delta) o T0 in the
 dataparser frame, render the model and compare with the photos (`objectives.PhotoLosses`), aggregate the
 per-photo losses robustly (`robust.RobustAggregator`, LTS by default), take an Adam step on the 7
 parameters delta (`robust_step`) and record what happened (`History`). At the end the result is probed
@@ -53,7 +53,7 @@ class RegistrationResult:
     initial_losses: Array
     final_trimmed_loss: float
     history: list[dict]  # per step and photo: step, image, loss, kept, weight
-    ignored_fraction: Array  # [P] fraction of its evaluations in which each photo was ignored
+    ignored_fraction: Array  # [P] fraction of the steps in which each photo did not count (not rendered between re-decisions: ignored)
     steps: int
     wall_time_s: float
     timings: dict
@@ -104,6 +104,44 @@ class BatchSchedule:
         return batch
 
 
+class RetrimSchedule:
+    """Which photos each step renders when the robust rule may be re-decided only every `retrim_every` steps.
+
+    A step that re-decides (every `retrim_every`-th step after the stage's robust warm-up, and every warm-up step)
+    renders the `BatchSchedule`'s photos; the steps between render only the photos the rule counted at the last
+    one that re-decided (a trimmed photo's loss only decides whether it is trimmed). `retrim_every` 1: every step
+    re-decides (the paper's rule, which renders every photo every step)."""
+
+    def __init__(self, count: int, settings: RegistrationSettings, warmup_steps: int):
+        self.batches = BatchSchedule(count, settings.images_per_step, settings.seed)
+        self.every, self.warmup_steps, self.calls = settings.retrim_every, warmup_steps, 0
+        self.decided: list[int] = []  # the photos of the last step that re-decided
+        self.counted_there: Optional[list[int]] = None  # those of them the rule counted; None: this step re-decides
+        self.between = False  # whether this step is one between re-decisions
+
+    def next(self) -> list[int]:
+        after_warmup = self.calls - self.warmup_steps
+        self.calls += 1
+        self.between = bool(self.every > 1 and self.counted_there and after_warmup > 0 and after_warmup % self.every)
+        if self.between:
+            return list(self.counted_there)
+        self.counted_there = None
+        self.decided = self.batches.next()
+        return self.decided
+
+    def counted(self, batch: list[int], kept: Array) -> None:
+        """Remember the photos the rule counted, if `batch` was a step that re-decided."""
+        if self.counted_there is None:
+            self.counted_there = [index for index, keep in zip(batch, kept) if keep]
+
+    def left_out(self, batch: list[int]) -> list[int]:
+        """Photos of the last re-decision that a step between re-decisions did not render (ignored there)."""
+        if not self.between:
+            return []
+        rendered = set(batch)
+        return [index for index in self.decided if index not in rendered]
+
+
 class History:
     """Per step and photo: loss, whether the robust loss kept it, its weight; and how often each was ignored."""
 
@@ -117,6 +155,12 @@ class History:
         for index, loss, keep, weight in zip(batch, [float(loss.detach()) for loss in losses], kept, weights):
             self.rows.append({"step": step, "image": self.names[index], "loss": loss, "kept": bool(keep), "weight": float(weight), "stage": stage})
             self.ignored[index] += not keep
+            self.evaluated[index] += 1
+
+    def skip(self, indices: list[int]) -> None:
+        """Photos a step did not render because the robust rule had trimmed them: ignored in that step."""
+        for index in indices:
+            self.ignored[index] += 1
             self.evaluated[index] += 1
 
     def extend(self, other: "History") -> None:
@@ -466,13 +510,15 @@ def optimise_stage(
     optimizer = torch.optim.Adam([delta], lr=stage.lr, eps=settings.adam_eps)
     gamma = (stage.lr_final / stage.lr) ** (1.0 / max(stage.steps, 1)) if stage.lr_final else 1.0
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
-    batches = BatchSchedule(len(losses.photos), settings.images_per_step, settings.seed)
+    batches = RetrimSchedule(len(losses.photos), settings, aggregator.warmup_steps)
     for step in range(first_step, first_step + stage.steps):
         batch = batches.next()
         values, kept, weights = robust_step(losses, aggregator, Sim3.update(delta, centre) @ start, batch, optimizer, scheduler, anchors)
         if not torch.isfinite(delta).all():
             raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step} ({stage.name}).")
+        batches.counted(batch, kept)
         history.record(step, batch, values, kept, weights, stage.name)
+        history.skip(batches.left_out(batch))
         if on_step is not None:
             on_step(step, current_estimate(delta, centre, start))
     return current_estimate(delta, centre, start), first_step + stage.steps

@@ -61,6 +61,9 @@ class RegistrationSettings:
     the others). 0: the rule from the first step (paper); 0 in every preset (docs/measurements.md, "The robust loss")."""
     images_per_step: int = 0
     """Photos rendered per step; 0 = all of them (paper)."""
+    retrim_every: int = 1
+    """Steps between re-decisions of which photos the robust rule counts: a step that re-decides renders every photo,
+    the steps between render only those it counted (`optimize.RetrimSchedule`). 1: every step (paper)."""
     teacher_input_size: Optional[int] = None
     """Teacher input size for the photos; default: the one the reference model was trained with (or the render
     teacher's own default when `render_teacher` names another one)."""
@@ -209,6 +212,8 @@ def check_ranges(settings: RegistrationSettings, preset: Optional[str] = None) -
             kind = "a whole number" if whole else "a finite number"
             bound = "above 0" if name in POSITIVE else "of 0 or more"
             raise SettingsRangeError(f"{setting(name)} must be {kind} {bound}, got {value!r}.")
+    if not isinstance(settings.retrim_every, int) or isinstance(settings.retrim_every, bool) or settings.retrim_every < 1:
+        raise SettingsRangeError(f"{setting('retrim_every')} must be a whole number of 1 or more, got {settings.retrim_every!r}.")
     kept = settings.hypotheses_kept
     if not isinstance(kept, int) or isinstance(kept, bool) or kept < 1:
         raise SettingsRangeError(f"{setting('hypotheses_kept')} must be 1 or more, got {settings.hypotheses_kept!r}.")

@@ -311,14 +311,14 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
     code, err = run_cli([
         "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
         "--init", str(init), "--gt", str(tiny_scene / "meta" / "front" / "gt_transform.json"),
-        "--steps", "12", "--images-per-step", "2", "--lr", "0.004", "--refine-steps", "3",
+        "--steps", "12", "--images-per-step", "2", "--lr", "0.004", "--refine-steps", "3", "--retrim-every", "1",  # two rows a step
     ], capsys)
     assert code == 0, err
     result = out / "front"
     record = json.loads((result / "transform.json").read_text())
     assert {"matrix", "scale", "rotation_wxyz", "translation", "initial", "final_trimmed_loss", "steps", "wall_time_s", "settings", "verdict"} <= set(record)
     assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"] and "sharpness" in record["verdict_evidence"]
-    assert record["steps"] == 12 + 3 and record["settings"]["images_per_step"] == 2
+    assert record["steps"] == 12 + 3 and record["settings"]["images_per_step"] == 2 and record["settings"]["retrim_every"] == 1
     rendered = record["rendered_model"]  # the tiny reference is far within the render budget: merged at 1 px
     assert rendered["voxel_pixels"] == 1.0 and 0 < rendered["rendered"] <= rendered["gaussians"] and rendered["culls"] >= 1
     np.testing.assert_allclose(record["initial"]["matrix"], start, atol=1e-9)

@@ -128,8 +128,10 @@ def _plot_losses(path: Path, result: RegistrationResult) -> None:
     kept = np.array([row["kept"] for row in result.history], dtype=bool)
     all_mean = np.bincount(steps, weights=losses) / np.maximum(np.bincount(steps), 1)
     kept_mean = np.bincount(steps, weights=losses * kept) / np.maximum(np.bincount(steps, weights=kept.astype(float)), 1)
+    rendered = np.bincount(steps)
+    every = np.flatnonzero(rendered == rendered.max()) if len(rendered) else rendered  # steps between re-decisions render fewer
     figure, axis = plt.subplots(figsize=(6, 3.5))
-    axis.plot(all_mean, label="all photos in the step", alpha=0.6)
+    axis.plot(every, all_mean[every], label="all photos in the step", alpha=0.6)
     axis.plot(kept_mean, label="kept by the robust loss")
     for row in stage_starts(result.history)[1:]:  # coarse-to-fine: each stage has its own loss scale
         axis.axvline(row["step"], color="grey", linestyle=":")

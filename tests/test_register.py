@@ -223,7 +223,6 @@ def test_lts_ignores_the_worst_photos(reference, meta, ground_truth):
     assert result.ignored_fraction[worst] == pytest.approx(1.0)
 
 
-
 def test_retrim_schedule_renders_only_the_counted_photos_between_re_decisions():
     schedule = optimize.RetrimSchedule(5, RegistrationSettings(retrim_every=3), warmup_steps=2)
     counted = np.array([True, False, True, False, True])
@@ -251,6 +250,7 @@ def test_retrimming_less_often_renders_less_and_ends_where_the_paper_rule_does(r
     np.testing.assert_array_equal(lazy.ignored_fraction[paper.ignored_fraction == 1.0], 1.0)
     initial, ends = pose_errors(meta.poses, start, ground_truth), pose_errors(meta.poses, lazy.transform, paper.transform)
     assert ends.rotation_deg < 0.1 * initial.rotation_deg and ends.translation < 0.1 * initial.translation, (initial, ends)
+
 
 def test_trimming_rules_drop_only_what_they_should():
     median_rule, outlier_rule = TrimmingRule("lts"), TrimmingRule("outlier-lts")

@@ -192,6 +192,8 @@ POSITIVE = ("lr", "adam_eps", "render_scale", "near_plane", "refine_lr", "photo_
 """Numbers > 0 (None allowed where the default is None)."""
 NON_NEGATIVE = ("hypothesis_deg", "level_of_detail", "keypoint_weight")
 """Numbers >= 0."""
+AT_LEAST_ONE = ("retrim_every", "hypotheses_kept")
+"""Whole numbers >= 1."""
 
 
 def check_ranges(settings: RegistrationSettings, preset: Optional[str] = None) -> None:
@@ -212,11 +214,10 @@ def check_ranges(settings: RegistrationSettings, preset: Optional[str] = None) -
             kind = "a whole number" if whole else "a finite number"
             bound = "above 0" if name in POSITIVE else "of 0 or more"
             raise SettingsRangeError(f"{setting(name)} must be {kind} {bound}, got {value!r}.")
-    if not isinstance(settings.retrim_every, int) or isinstance(settings.retrim_every, bool) or settings.retrim_every < 1:
-        raise SettingsRangeError(f"{setting('retrim_every')} must be a whole number of 1 or more, got {settings.retrim_every!r}.")
-    kept = settings.hypotheses_kept
-    if not isinstance(kept, int) or isinstance(kept, bool) or kept < 1:
-        raise SettingsRangeError(f"{setting('hypotheses_kept')} must be 1 or more, got {settings.hypotheses_kept!r}.")
+    for name in AT_LEAST_ONE:
+        value = getattr(settings, name)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise SettingsRangeError(f"{setting(name)} must be a whole number of 1 or more, got {value!r}.")
     if any(not isinstance(factor, int) or factor < 2 for factor in settings.pyramid):
         raise SettingsRangeError(f"{setting('pyramid')} must list whole numbers of 2 or more, got {list(settings.pyramid)}.")
     if any(not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0 for scale in settings.hypothesis_scales):

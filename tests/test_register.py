@@ -22,7 +22,7 @@ from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
 from sg_nerfstudio.registration.depth_agreement import PointPixels, log_depth_ratios, summarise
 from sg_nerfstudio.registration.metrics import pose_errors
-from sg_nerfstudio.registration import optimize, verdict
+from sg_nerfstudio.registration import hypotheses, optimize, scale_search, schedules, stages, verdict
 from sg_nerfstudio.registration.objectives import (
     ObjectiveSettingsError, PhotoLosses, build_objective, prepare_photos, refine_settings, teacher_on_render_target,
 )
@@ -224,7 +224,7 @@ def test_lts_ignores_the_worst_photos(reference, meta, ground_truth):
 
 
 def test_retrim_schedule_renders_only_the_counted_photos_between_re_decisions():
-    schedule = optimize.RetrimSchedule(5, RegistrationSettings(retrim_every=3), warmup_steps=2)
+    schedule = schedules.RetrimSchedule(5, RegistrationSettings(retrim_every=3), warmup_steps=2)
     counted = np.array([True, False, True, False, True])
     batches = []
     for _ in range(8):
@@ -234,7 +234,7 @@ def test_retrim_schedule_renders_only_the_counted_photos_between_re_decisions():
     every, kept = ([0, 1, 2, 3, 4], []), ([0, 2, 4], [1, 3])
     # warm-up (2 steps), then a re-decision every third step, the counted photos alone in between
     assert batches == [every, every, every, kept, kept, every, kept, kept]
-    paper = optimize.RetrimSchedule(5, RegistrationSettings(), warmup_steps=0)
+    paper = schedules.RetrimSchedule(5, RegistrationSettings(), warmup_steps=0)
     assert all(paper.next() == [0, 1, 2, 3, 4] for _ in range(4))
     with pytest.raises(SettingsRangeError, match=r"retrim_every \(--retrim-every\) must be a whole number of 1 or more, got 0"):
         check_ranges(RegistrationSettings(retrim_every=0))
@@ -652,7 +652,7 @@ def test_depth_agreement_of_the_meta_image_follows_a_wrong_scale(reference, meta
     indices = list(range(len(meta.photos)))
 
     def agreement(factor: float):
-        transform = optimize.scaled_about_centroid(truth, meta, factor)
+        transform = hypotheses.scaled_about_centroid(truth, meta, factor)
         return summarise(losses.evaluate(transform.to_torch(), indices, with_depth=True)[2])
 
     at_truth, larger, smaller = agreement(1.0), agreement(1.25), agreement(0.8)
@@ -691,7 +691,9 @@ def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, g
     27 hypotheses (the start and 8 rotations, each at 3 scales) of which 3 are optimised, then the main stage end
     at the truth; history and step count follow the stages."""
     original = optimize.prepare_photos
-    monkeypatch.setattr(optimize, "prepare_photos", lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s))
+    rendered = lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s)
+    for module in (optimize, stages):  # the main stage's photos and the coarse stage's
+        monkeypatch.setattr(module, "prepare_photos", rendered)
     settings = RegistrationSettings(**{**FAST, "steps": 60, "lr": 0.01, "lr_final": 0.0005, "objective": "teacher-on-render", "render_scale": 4.0,
                                        "pyramid": (2,), "pyramid_steps": 40, "hypotheses": 8, "hypothesis_scales": (0.8, 1.25)})
     start = perturbed_start(meta, ground_truth, 30, 12.0, 0.1, 0.1)
@@ -1267,15 +1269,15 @@ def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(refere
     main_only = register(reference, meta, start, base)
     refined = register(reference, meta, start, settings)
     assert refined.steps == optimize.total_steps(settings) == 45
-    stages = [row["stage"] for row in refined.history]
-    assert stages == ["main"] * (30 * len(meta.photos)) + ["refine-dense-sift"] * (15 * len(meta.photos))
+    stage_names = [row["stage"] for row in refined.history]
+    assert stage_names == ["main"] * (30 * len(meta.photos)) + ["refine-dense-sift"] * (15 * len(meta.photos))
     assert [row["loss"] for row in refined.history[: 30 * len(meta.photos)]] == [row["loss"] for row in main_only.history]
 
     sift = refine_settings(settings)
     objective = build_objective(reference, sift)
     judge = PhotoLosses(reference, prepare_photos(reference, meta, sift, objective), objective, sift, refined.near_plane)
     rule = TrimmingRule.of(settings)
-    at = lambda world: rule.trimmed_mean(optimize.objective_at(judge, reference.world_to_dataparser @ world))
+    at = lambda world: rule.trimmed_mean(stages.objective_at(judge, reference.world_to_dataparser @ world))
     assert at(refined.transform) < at(main_only.transform)
 
     anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=2)
@@ -1373,11 +1375,11 @@ def test_the_scale_one_anchored_photo_leaves_free_is_found_about_its_camera(refe
 
     anchors = lambda keypoints: Anchoring(meta, keypoints, Sim3.identity(), 1.0)  # the stand-in objective works in the world frame
     settings = RegistrationSettings(robust="none")
-    found, record = optimize.scale_the_anchors_leave_free(_CentreLosses(meta, ground_truth), anchors(one), meta, start, settings)
+    found, record = scale_search.scale_the_anchors_leave_free(_CentreLosses(meta, ground_truth), anchors(one), meta, start, settings)
     assert record["photos"] == [first.name] and abs(record["factor"] - 1 / 1.35) < 0.02
     assert np.allclose(found.apply(camera_centres(first.cam_from_world[None])), centre[None], atol=1e-9)  # the anchored camera stays
     assert pose_errors(meta.poses, found, ground_truth).translation < 0.1 * pose_errors(meta.poses, start, ground_truth).translation
-    unchanged, none = optimize.scale_the_anchors_leave_free(_CentreLosses(meta, ground_truth), anchors(two), meta, ground_truth, settings)
+    unchanged, none = scale_search.scale_the_anchors_leave_free(_CentreLosses(meta, ground_truth), anchors(two), meta, ground_truth, settings)
     assert none is None and np.allclose(unchanged.matrix, ground_truth.matrix)
 
 

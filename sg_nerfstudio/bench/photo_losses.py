@@ -32,10 +32,11 @@ from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import perturbed
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos
-from sg_nerfstudio.registration.optimize import effective_near_plane, objective_at
+from sg_nerfstudio.registration.optimize import effective_near_plane
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import TrimmingRule
 from sg_nerfstudio.registration.settings import RegistrationSettings, load_preset
+from sg_nerfstudio.registration.stages import objective_at
 from sg_nerfstudio.render.threads import set_threads
 
 

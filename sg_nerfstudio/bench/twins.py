@@ -3,7 +3,7 @@
 Internet photos are often taken from the same few spots. A photo and a zoomed-in one from where it was taken fix the
 Sim(3)'s scale no better than one photo: scaling the world about their shared camera centre moves neither image. This
 study checks that the registration notices (`keypoints.anchors_fix_scale`: the camera fit then leaves the scale to the
-dense objective, `optimize.scale_the_anchors_leave_free`, and the verdict probes it) on real meta-images:
+dense objective, `scale_search.scale_the_anchors_leave_free`, and the verdict probes it) on real meta-images:
 
 1. `build_twins` copies every scene of a benchmark (layout: bench/layout.py; the reference linked, not copied) and gives
    each meta-image a twin of its photo with the most keypoint correspondences (A): A cropped to its central `zoom`

@@ -79,7 +79,7 @@ MIN_DEPTH = 1e-6
 """Points at or behind a camera (under the current transform) carry no keypoint term for that step."""
 SCALE_RESOLUTION = 0.02
 """The change of the Sim(3)'s scale (a log factor: 2%) the anchors must see for them to fix the scale
-(`anchors_fix_scale`); the fine step of the registration's scale search (`optimize.SCALE_SEARCH`)."""
+(`anchors_fix_scale`); the fine step of the registration's scale search (`scale_search.SCALE_SEARCH`)."""
 KEYPOINT_PRECISION_PX = 0.1
 """The least error `anchors_fix_scale` compares with: about the best SIFT localises a keypoint (keypoints projected
 exactly, as in tests, have none, and a motion of nothing must not beat an error of nothing)."""
@@ -393,7 +393,7 @@ class Anchoring:
         leave the model's scale about them free, a direction the adjuster would end anywhere along (fountain-P11
         0005-0008 with one photo's anchors: 0.90 and 0.99 of the truth's scale from starts at 1.00 and 1.10); the prior
         fit moves only the anchored photos and the registration then searches that scale
-        (`optimize.scale_the_anchors_leave_free`)."""
+        (`scale_search.scale_the_anchors_leave_free`)."""
         if adjustment and pose_prior_scale is not None and adjustable(self.meta) and self.fix_scale(start, grid_size):
             return self.adjusted_cameras(start, focal, distortion)
         kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS

@@ -27,7 +27,6 @@ from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.geometry.triangulation import track_observations, triangulate_track
 
 
-
 @dataclass
 class MergePart:
     """One reconstruction already in the reference world frame, and the prefix its image names get."""

@@ -1,11 +1,16 @@
-"""The registration loop: optimise one Sim(3) of a whole meta-image against the frozen reference model.
+"""The registration of one meta-image: one Sim(3) against the frozen reference model (`register`, the entry point).
 
-Per step: choose the photos of the step (`RetrimSchedule`, `BatchSchedule`), move their cameras by T = U(delta) o T0 in the
-dataparser frame, render the model and compare with the photos (`objectives.PhotoLosses`), aggregate the
-per-photo losses robustly (`robust.RobustAggregator`, LTS by default), take an Adam step on the 7
-parameters delta (`robust_step`) and record what happened (`History`). At the end the result is probed
-around for its verdict (`verdict.py`). Everything the caller passes in
-and gets back is in the reference *world* frame.
+Phases, each a function below:
+1. `anchored_start`: with keypoint anchors, the render-free pre-alignment and the camera fit (the photos' focal
+   lengths, poses and radial distortion fitted with the Sim(3): registration/keypoints.py, anchored_adjustment.py);
+   without them, the start as given.
+2. The rendered stages (`run_stages`): the coarse `pyramid` stages (several starts at the first with `hypotheses`:
+   hypotheses.py), the main stage, the refine stage; each Adam on delta over its per-photo losses (stages.py). Where the
+   anchors leave the scale free, the scale is searched before the main stage (scale_search.py).
+3. `assess`: the final evaluation and the verdict's evidence, probed around the result (verdict.py, other_minimum.py).
+
+Everything the caller passes in and gets back is in the reference *world* frame; the phases work in nerfstudio's
+dataparser frame (`ReferenceModel.world_to_dataparser`), transforms meta -> dataparser.
 """
 
 from __future__ import annotations
@@ -13,28 +18,30 @@ from __future__ import annotations
 import math
 import time
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from typing import Callable, ContextManager, Optional
 
 import numpy as np
 import torch
-from torch import Tensor
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.alignment import align_cameras, camera_residuals
 from sg_nerfstudio.geometry.meta_image import MetaImage
-from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
+from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
-from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
-from sg_nerfstudio.registration.keypoints import SCALE_RESOLUTION, Anchoring, CameraFit, KeypointTerm, anchors_fix_scale
-from sg_nerfstudio.features import teacher_input_size
-from sg_nerfstudio.registration.objectives import (
-    Objective, PhotoLosses, PreparedPhoto, build_objective, objective_teacher_config, prepare_photos, refine_settings, with_camera_changes,
-)
-from sg_nerfstudio.registration.reference import ReferenceModel
-from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule, check_robust_settings
-from sg_nerfstudio.registration.settings import RegistrationSettings, check_ranges
 from sg_nerfstudio.registration import other_minimum
+from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
+from sg_nerfstudio.registration.hypotheses import best_hypothesis
+from sg_nerfstudio.registration.keypoints import Anchoring, CameraFit
+from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos, with_camera_changes
+from sg_nerfstudio.registration.reference import ReferenceModel
+from sg_nerfstudio.registration.robust import TrimmingRule, check_robust_settings
+from sg_nerfstudio.registration.scale_search import scale_the_anchors_leave_free
+from sg_nerfstudio.registration.schedules import History
+from sg_nerfstudio.registration.settings import RegistrationSettings, check_ranges
+from sg_nerfstudio.registration.stages import (
+    Stage, coarse_stages, objective_with_anchors, optimise_stage, refine_stages, refines, update_centre, uses_anchors,
+)
 from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence, probe_sizes
 from sg_nerfstudio.registration.visibility import MAX_ROTATION_DEG
 
@@ -86,91 +93,162 @@ class RegistrationResult:
     error (pixels), the factor chosen about their mean camera centre and the objective there; None otherwise."""
 
 
-class BatchSchedule:
-    """Which photos each step renders: all of them, or `per_step` drawn without replacement from seeded
-    permutations (every photo once per epoch)."""
+def register(
+    reference: ReferenceModel,
+    meta: MetaImage,
+    initial_world: Sim3,
+    settings: RegistrationSettings,
+    photos: Optional[list[PreparedPhoto]] = None,
+    on_step: Optional[Callable[[int, Sim3], None]] = None,
+    objective: Optional[Objective] = None,
+    keypoints: Optional[list[PhotoKeypoints]] = None,
+) -> RegistrationResult:
+    """Estimate the Sim(3) meta -> reference world starting from `initial_world` (the three phases of the module docstring).
 
-    def __init__(self, count: int, per_step: int, seed: int):
-        self.count, self.per_step = count, per_step or count
-        self.rng = np.random.default_rng(seed)
-        self.queue: list[int] = []
+    Stages: the coarse-to-fine `pyramid` stages of the settings (if any; hypotheses around the start at the
+    coarsest), then the main stage at the settings' teacher size, then the `refine_steps` stage (if any). The
+    verdict and the final losses are the main stage's objective (the one its thresholds were calibrated on).
+    `photos` and `objective` may come prepared for the main stage (`prepare_photos`, `build_objective`: the
+    teacher is built once). `on_step(step, transform)` is called after every step of every stage
+    (`total_steps(settings, anchored)` in all) with the current estimate (meta -> world). `keypoints`: the photos'
+    verified SIFT correspondences with the reference (`Initialiser.keypoints`); with `settings.keypoint_weight > 0`
+    every stage adds their reprojection term
+    (registration/keypoints.py), and with `settings.refine_focal` / `settings.refine_photo_poses` the photos' focal
+    lengths / poses fitted to them before the first render are used by every stage (`RegistrationResult.focal_scales`,
+    `pose_corrections`); with moved poses the returned transform is the final one composed with the Sim(3) that maps
+    the given cameras onto the moved ones (`geometry.alignment.align_cameras`).
+    """
+    started = time.perf_counter()
+    check_ranges(settings)
+    check_robust_settings(settings)
+    objective = objective or build_objective(reference, settings)
+    ns_to_world = reference.world_to_dataparser.inverse()
+    initial_ns = reference.world_to_dataparser @ initial_world
+    near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
+    start = anchored_start(meta, photos, initial_ns, settings, reference.world_to_dataparser, keypoints, objective.teacher.grid_size)
+    meta = start.meta
+    photos = start.photos if start.photos is not None else prepare_photos(reference, meta, settings, objective)
+    main_steps, main_lr = main_schedule(settings, start.prealigned)
+    main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), main_steps, main_lr, settings.lr_final)
+    current, scale_search = start.transform, None
+    if start.prealigned:
+        current, scale_search = scale_the_anchors_leave_free(main.losses, start.anchor, meta, current, settings)
+    initial_losses, coverage = evaluate_start(main.losses, initial_ns @ start.camera_shift.inverse(), meta.name)  # the given cameras at the start
 
-    def next(self) -> list[int]:
-        if self.per_step >= self.count:
-            return list(range(self.count))
-        while len(self.queue) < self.per_step:
-            self.queue.extend(self.rng.permutation(self.count).tolist())
-        batch, self.queue = self.queue[: self.per_step], self.queue[self.per_step :]
-        return batch
+    history = History([p.name for p in photos])
+    report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
+    stages = coarse_stages(reference, meta, settings, near_plane) + [main] + refine_stages(reference, meta, settings, near_plane, bool(start.anchor), main)
+    current, hypotheses, step = run_stages(stages, main, meta, current, initial_ns, initial_losses, settings, history, report, start.anchor)
+
+    final_losses, trimmed, evidence, verdict_s = assess(main, meta, current, initial_losses, settings, start, scale_search)
+    evidence.hypothesis_margin = hypothesis_margin(hypotheses)
+    distinct = {id(stage.losses): stage.losses for stage in stages}.values()  # a refine stage may share the main stage's
+    timings = {key: sum(losses.timings[key] for losses in distinct) for key in main.losses.timings}
+    timings["verdict"] = verdict_s  # the probes' renders (also counted in "render" and "loss")
+    return RegistrationResult(
+        transform=ns_to_world @ current @ start.camera_shift,
+        initial_transform=initial_world.numpy(),
+        final_losses=final_losses,
+        initial_losses=initial_losses,
+        final_trimmed_loss=trimmed,
+        history=history.rows,
+        ignored_fraction=history.ignored_fraction(),
+        steps=step,
+        wall_time_s=time.perf_counter() - started,
+        timings=timings,
+        near_plane=near_plane,
+        settings=asdict(settings),
+        photo_names=[p.name for p in photos],
+        coverage=coverage,
+        verdict=decide(evidence),
+        hypotheses=hypotheses,
+        rendered_model=rendered_model_record(reference, main.losses),
+        focal_scales=start.fit.focal_scales,
+        radial_k1=start.fit.radial_k1,
+        pose_corrections=pose_corrections(start.given, meta, start.camera_shift, current.scale * ns_to_world.scale, set(start.fit.poses)),
+        photo_poses={photo.name: (ns_to_world @ current).move_camera(photo.cam_from_world) for photo in meta.photos if photo.name in start.fit.poses},
+        scale_search=scale_search,
+    )
 
 
-class RetrimSchedule:
-    """Which photos each step renders when the robust rule may be re-decided only every `retrim_every` steps.
+@dataclass
+class AnchoredStart:
+    """Where the rendered stages begin (`anchored_start`)."""
 
-    A step that re-decides (every `retrim_every`-th step after the stage's robust warm-up, and every warm-up step)
-    renders the `BatchSchedule`'s photos; the steps between render only the photos the rule counted at the last
-    one that re-decided (a trimmed photo's loss only decides whether it is trimmed). `retrim_every` 1: every step
-    re-decides (the paper's rule, which renders every photo every step)."""
-
-    def __init__(self, count: int, settings: RegistrationSettings, warmup_steps: int):
-        self.batches = BatchSchedule(count, settings.images_per_step, settings.seed)
-        self.every, self.warmup_steps, self.calls = settings.retrim_every, warmup_steps, 0
-        self.decided: list[int] = []  # the photos of the last step that re-decided
-        self.counted_there: Optional[list[int]] = None  # those of them the rule counted; None: this step re-decides
-        self.between = False  # whether this step is one between re-decisions
-
-    def next(self) -> list[int]:
-        after_warmup = self.calls - self.warmup_steps
-        self.calls += 1
-        self.between = bool(self.every > 1 and self.counted_there and after_warmup > 0 and after_warmup % self.every)
-        if self.between:
-            return list(self.counted_there)
-        self.counted_there = None
-        self.decided = self.batches.next()
-        return self.decided
-
-    def counted(self, batch: list[int], kept: Array) -> None:
-        """Remember the photos the rule counted, if `batch` was a step that re-decided."""
-        if self.counted_there is None:
-            self.counted_there = [index for index, keep in zip(batch, kept) if keep]
-
-    def left_out(self, batch: list[int]) -> list[int]:
-        """Photos of the last re-decision that a step between re-decisions did not render (ignored there)."""
-        if not self.between:
-            return []
-        rendered = set(batch)
-        return [index for index in self.decided if index not in rendered]
+    transform: Sim3  # meta -> dataparser: the keypoint pre-alignment's and camera fit's result, or the start as given
+    fit: CameraFit  # the photos' fitted focal scales, poses and radial k1 (none without a camera fit)
+    meta: MetaImage  # the meta-image with those cameras
+    given: MetaImage  # the meta-image as given
+    photos: Optional[list[PreparedPhoto]]  # the caller's prepared photos with the fitted cameras; None: prepare them again
+    anchor: Anchoring  # the keypoint anchors (empty without keypoints), for the moved photos
+    camera_shift: Sim3  # meta -> meta: maps the given cameras onto the moved ones (identity when no photo moved)
+    prealigned: bool  # whether the keypoint pre-alignment ran
 
 
-class History:
-    """Per step and photo: loss, whether the robust loss kept it, its weight; and how often each was ignored."""
+def anchored_start(
+    meta: MetaImage, photos: Optional[list[PreparedPhoto]], initial_ns: Sim3, settings: RegistrationSettings, world_to_ns: Sim3,
+    keypoints: Optional[list[PhotoKeypoints]], grid_size: int,
+) -> AnchoredStart:
+    """Phase 1 of `register`: with keypoint anchors that the settings weigh, the render-free pre-alignment from
+    `initial_ns` (meta -> dataparser) and the camera fit (`keypoint_prealignment`); otherwise the start as given."""
+    anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
+    if not prealigns(settings, bool(anchor)):
+        return AnchoredStart(initial_ns, CameraFit(initial_ns), meta, meta, photos, anchor, Sim3.identity(), False)
+    fit = keypoint_prealignment(anchor, meta, initial_ns, settings, grid_size)
+    moved, photos = with_fitted_cameras(meta, photos, fit)
+    anchor = anchor.for_meta(moved, narrow=True if fit.poses else None)  # the moved photos fit their keypoints under the narrow kernel
+    camera_shift = align_cameras(np.stack(meta.poses), np.stack(moved.poses)).transform if fit.poses else Sim3.identity()
+    return AnchoredStart(fit.transform, fit, moved, meta, photos, anchor, camera_shift, True)
 
-    def __init__(self, names: list[str]):
-        self.names = names
-        self.rows: list[dict] = []
-        self.ignored = np.zeros(len(names))
-        self.evaluated = np.zeros(len(names))
 
-    def record(self, step: int, batch: list[int], losses: list[Tensor], kept: Array, weights: Array, stage: str = "main") -> None:
-        for index, loss, keep, weight in zip(batch, [float(loss.detach()) for loss in losses], kept, weights):
-            self.rows.append({"step": step, "image": self.names[index], "loss": loss, "kept": bool(keep), "weight": float(weight), "stage": stage})
-            self.ignored[index] += not keep
-            self.evaluated[index] += 1
+def run_stages(
+    stages: list[Stage], main: Stage, meta: MetaImage, start_ns: Sim3, initial_ns: Sim3, initial_losses: Array, settings: RegistrationSettings,
+    history: History, on_step: Optional[Callable[[int, Sim3], None]], anchor: Anchoring,
+) -> tuple[Sim3, list[dict], int]:
+    """Phase 2 of `register`: the stages in order from `start_ns` (meta -> dataparser), the first from several starts with
+    `settings.hypotheses`; (the result, the hypotheses' records, the number of steps). `initial_losses` [P]: the main
+    stage's losses at `initial_ns`, which seed its robust rule when it runs first from there."""
+    current, step, hypotheses = start_ns, 0, []
+    for index, stage in enumerate(stages):
+        if index == 0 and settings.hypotheses > 0:
+            current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, on_step, anchor)
+        else:
+            seed = initial_losses if stage is main and index == 0 and current is initial_ns else None  # the start's losses, if still the start
+            current, step = optimise_stage(stage, meta, current, settings, history, step, on_step, seed, anchor)
+    return current, hypotheses, step
 
-    def skip(self, indices: list[int]) -> None:
-        """Photos a step did not render because the robust rule had trimmed them: ignored in that step."""
-        for index in indices:
-            self.ignored[index] += 1
-            self.evaluated[index] += 1
 
-    def extend(self, other: "History") -> None:
-        """Append the rows and counts of another history of the same photos."""
-        self.rows.extend(other.rows)
-        self.ignored += other.ignored
-        self.evaluated += other.evaluated
+def assess(
+    main: Stage, meta: MetaImage, result: Sim3, initial_losses: Array, settings: RegistrationSettings, start: AnchoredStart,
+    scale_search: Optional[dict],
+) -> tuple[Array, float, Evidence, float]:
+    """Phase 3 of `register`: the main stage's [P] losses at `result` (meta -> dataparser), their trimmed mean, the
+    verdict's evidence (`verdict.gather_evidence`; the anchors' errors where there are anchors, the look for another
+    minimum where there are none) and the seconds its probes took."""
+    with held_for_probes(main.losses, meta, result):
+        final_losses, final_coverage, trimmed, depth = final_evaluation(main.losses, result, settings)
+        probing = time.perf_counter()
+        evidence = gather_evidence(
+            main.losses, meta, result, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth,
+            scale_search["photos"] if scale_search else None,
+        )
+    evidence.camera_fit_refused = start.fit.refused or None
+    final_anchors = start.anchor.term(main.losses.objective.teacher.grid_size, 1.0)
+    if final_anchors is not None:
+        evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(result), final_anchors.photos
+        evidence.keypoint_scale_motion_px, evidence.keypoint_error_px = final_anchors.scale_motion_px(result)
+    if not uses_anchors(settings, bool(start.anchor)) and failure(evidence) is None:  # a failed result needs no second look
+        record_other_minimum(evidence, main, meta, result, final_losses, settings)
+    return final_losses, trimmed, evidence, time.perf_counter() - probing
 
-    def ignored_fraction(self) -> Array:
-        return self.ignored / np.maximum(self.evaluated, 1)
+
+def hypothesis_margin(hypotheses: list[dict]) -> Optional[float]:
+    """How much higher, relative to the winner, the best optimised hypothesis that ended elsewhere scored; None when
+    every one agrees with the winner (or there were none)."""
+    elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
+    if not elsewhere:
+        return None
+    return min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
 
 
 def effective_near_plane(meta: MetaImage, initial_ns: Sim3, requested: float) -> float:
@@ -194,25 +272,6 @@ def evaluate_start(losses: PhotoLosses, initial_ns: Sim3, meta_name: str) -> tup
     return torch.stack(values).double().numpy(), coverage.double().numpy()
 
 
-def robust_step(
-    losses: PhotoLosses, aggregator: RobustAggregator, transform: Sim3, batch: list[int],
-    optimizer: torch.optim.Optimizer, scheduler: torch.optim.lr_scheduler.LRScheduler, anchors: Optional[KeypointTerm] = None,
-) -> tuple[list[Tensor], Array, Array]:
-    """One Adam step on the robust objective of `batch` under `transform` (plus the keypoint term when there are
-    `anchors`); returns (losses, kept, weights)."""
-    values, _ = losses(transform, batch)
-    objective, kept, weights = aggregator(values, np.asarray(batch))
-    start = time.perf_counter()
-    if anchors:
-        objective = objective + anchors(transform)
-    optimizer.zero_grad()
-    objective.backward()
-    optimizer.step()
-    scheduler.step()
-    losses.timings["backward"] += time.perf_counter() - start
-    return values, kept, weights
-
-
 def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: RegistrationSettings) -> tuple[Array, Array, float, DepthAgreement]:
     """[P] losses and [P] coverage at the final transform, the losses' trimmed mean (those the robust rule
     counts) and the depth agreement of the photos' sparse points there (one render for all)."""
@@ -220,112 +279,6 @@ def final_evaluation(losses: PhotoLosses, final_ns: Sim3, settings: Registration
         values, coverage, ratios = losses.evaluate(final_ns.to_torch(), list(range(len(losses.photos))), with_depth=True)
     final = torch.stack(values).double().numpy()
     return final, coverage.double().numpy(), TrimmingRule.of(settings).trimmed_mean(final), summarise(ratios)
-
-
-def register(
-    reference: ReferenceModel,
-    meta: MetaImage,
-    initial_world: Sim3,
-    settings: RegistrationSettings,
-    photos: Optional[list[PreparedPhoto]] = None,
-    on_step: Optional[Callable[[int, Sim3], None]] = None,
-    objective: Optional[Objective] = None,
-    keypoints: Optional[list[PhotoKeypoints]] = None,
-) -> RegistrationResult:
-    """Estimate the Sim(3) meta -> reference world starting from `initial_world`.
-
-    Stages: the coarse-to-fine `pyramid` stages of the settings (if any; hypotheses around the start at the
-    coarsest), then the main stage at the settings' teacher size, then the `refine_steps` stage (if any). The
-    verdict and the final losses are the main stage's objective (the one its thresholds were calibrated on).
-    `photos` and `objective` may come prepared for the main stage (`prepare_photos`, `build_objective`: the
-    teacher is built once). `on_step(step,
-    transform)` is called after every step of every stage (`total_steps(settings, anchored)` in all) with the current
-    estimate (meta -> world). `keypoints`: the photos' verified SIFT correspondences with the reference
-    (`Initialiser.keypoints`); with `settings.keypoint_weight > 0` every stage adds their reprojection term
-    (registration/keypoints.py), and with `settings.refine_focal` / `settings.refine_photo_poses` the photos' focal
-    lengths / poses fitted to them before the first render are used by every stage (`RegistrationResult.focal_scales`,
-    `pose_corrections`); with moved poses the returned transform is the final one composed with the Sim(3) that maps
-    the given cameras onto the moved ones (`geometry.alignment.align_cameras`).
-    """
-    started = time.perf_counter()
-    check_ranges(settings)
-    check_robust_settings(settings)
-    objective = objective or build_objective(reference, settings)
-    world_to_ns = reference.world_to_dataparser
-    ns_to_world = world_to_ns.inverse()
-    initial_ns = world_to_ns @ initial_world
-    near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
-    anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
-    prealigned = prealigns(settings, bool(anchor))
-    current, fit, given, scale_search = initial_ns, CameraFit(initial_ns), meta, None
-    if prealigned:
-        fit = keypoint_prealignment(anchor, meta, initial_ns, settings, objective.teacher.grid_size)
-        current = fit.transform
-        meta, photos = with_fitted_cameras(meta, photos, fit)
-        anchor = anchor.for_meta(meta, narrow=True if fit.poses else None)  # the moved photos fit their keypoints under the narrow kernel
-    camera_shift = align_cameras(np.stack(given.poses), np.stack(meta.poses)).transform if fit.poses else Sim3.identity()
-    photos = photos if photos is not None else prepare_photos(reference, meta, settings, objective)
-    main_steps, main_lr = main_schedule(settings, prealigned)
-    main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), main_steps, main_lr, settings.lr_final)
-    if prealigned:
-        current, scale_search = scale_the_anchors_leave_free(main.losses, anchor, meta, current, settings)
-    initial_losses, coverage = evaluate_start(main.losses, initial_ns @ camera_shift.inverse(), meta.name)  # the given cameras at the start
-
-    history = History([p.name for p in photos])
-    report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
-    stages = coarse_stages(reference, meta, settings, near_plane) + [main] + refine_stages(reference, meta, settings, near_plane, bool(anchor), main)
-    step, hypotheses = 0, []
-    for index, stage in enumerate(stages):
-        if index == 0 and settings.hypotheses > 0:
-            current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, report, anchor)
-        else:
-            seed = initial_losses if stage is main and index == 0 and current is initial_ns else None  # the start's losses, if still the start
-            current, step = optimise_stage(stage, meta, current, settings, history, step, report, seed, anchor)
-
-    with held_for_probes(main.losses, meta, current):
-        final_losses, final_coverage, trimmed, depth = final_evaluation(main.losses, current, settings)
-        probing = time.perf_counter()
-        evidence = gather_evidence(
-            main.losses, meta, current, final_losses, final_coverage, initial_losses, TrimmingRule.of(settings), depth,
-            scale_search["photos"] if scale_search else None,
-        )
-    evidence.camera_fit_refused = fit.refused or None
-    final_anchors = anchor.term(main.losses.objective.teacher.grid_size, 1.0)
-    if final_anchors is not None:
-        evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(current), final_anchors.photos
-        evidence.keypoint_scale_motion_px, evidence.keypoint_error_px = final_anchors.scale_motion_px(current)
-    if not uses_anchors(settings, bool(anchor)) and failure(evidence) is None:  # a failed result needs no second look
-        record_other_minimum(evidence, main, meta, current, final_losses, settings)
-    elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
-    if elsewhere:
-        evidence.hypothesis_margin = min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
-    distinct = {id(stage.losses): stage.losses for stage in stages}.values()  # a refine stage may share the main stage's
-    timings = {key: sum(losses.timings[key] for losses in distinct) for key in main.losses.timings}
-    timings["verdict"] = time.perf_counter() - probing  # the probes' renders (also counted in "render" and "loss")
-    return RegistrationResult(
-        transform=ns_to_world @ current @ camera_shift,
-        initial_transform=initial_world.numpy(),
-        final_losses=final_losses,
-        initial_losses=initial_losses,
-        final_trimmed_loss=trimmed,
-        history=history.rows,
-        ignored_fraction=history.ignored_fraction(),
-        steps=step,
-        wall_time_s=time.perf_counter() - started,
-        timings=timings,
-        near_plane=near_plane,
-        settings=asdict(settings),
-        photo_names=[p.name for p in photos],
-        coverage=coverage,
-        verdict=decide(evidence),
-        hypotheses=hypotheses,
-        rendered_model=rendered_model_record(reference, main.losses),
-        focal_scales=fit.focal_scales,
-        radial_k1=fit.radial_k1,
-        pose_corrections=pose_corrections(given, meta, camera_shift, current.scale * ns_to_world.scale, set(fit.poses)),
-        photo_poses={photo.name: (ns_to_world @ current).move_camera(photo.cam_from_world) for photo in meta.photos if photo.name in fit.poses},
-        scale_search=scale_search,
-    )
 
 
 def held_for_probes(losses: PhotoLosses, meta: MetaImage, result: Sim3) -> ContextManager:
@@ -410,22 +363,6 @@ def rendered_model_record(reference: ReferenceModel, losses: PhotoLosses) -> dic
     return {"gaussians": reference.count, "rendered": visible.subset.count, "voxel_pixels": visible.voxel_pixels, "culls": visible.culls}
 
 
-@dataclass
-class Stage:
-    """One optimisation stage: the per-photo losses it minimises (teacher size, render size) and its schedule."""
-
-    name: str  # "main" or "coarse-<teacher input size>"
-    losses: PhotoLosses
-    steps: int
-    lr: float
-    lr_final: Optional[float]
-
-
-def uses_anchors(settings: RegistrationSettings, anchored: bool) -> bool:
-    """Whether keypoint anchors hold the pose: the meta-image has them (`anchored`) and the settings weigh them."""
-    return anchored and settings.keypoint_weight > 0
-
-
 def prealigns(settings: RegistrationSettings, anchored: bool) -> bool:
     """Whether the keypoint pre-alignment runs: keypoint anchors hold the pose and the settings ask for it."""
     return uses_anchors(settings, anchored) and settings.keypoint_prealign_steps > 0
@@ -448,230 +385,3 @@ def total_steps(settings: RegistrationSettings, anchored: bool = False) -> int:
     runs = min(settings.hypotheses + 1, max(1, settings.hypotheses_kept)) if settings.hypotheses else 1
     refine = settings.refine_steps if refines(settings, anchored) else 0
     return main + len(settings.pyramid) * settings.pyramid_steps + (runs - 1) * first + refine
-
-
-def refines(settings: RegistrationSettings, anchored: bool) -> bool:
-    """Whether the refine stage runs: `refine_steps` > 0, and the meta-image has no keypoint anchors unless
-    `refine_anchored`."""
-    return settings.refine_steps > 0 and (settings.refine_anchored or not uses_anchors(settings, anchored))
-
-
-def refine_stages(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings, near_plane: float, anchored: bool, main: Stage) -> list[Stage]:
-    """[] or the refine stage: `refine_settings` (its own teacher and photo targets unless it is the main stage's),
-    `refine_steps` from `refine_lr` decaying to `lr_final`."""
-    if not refines(settings, anchored):
-        return []
-    own = refine_settings(settings)
-    if own == settings:  # the main stage's objective: its photos and targets serve
-        losses = main.losses
-    else:
-        objective = build_objective(reference, own)
-        losses = PhotoLosses(reference, prepare_photos(reference, meta, own, objective), objective, own, near_plane)
-    return [Stage(f"refine-{losses.objective.teacher_config.name}", losses, settings.refine_steps, settings.refine_lr, settings.lr_final)]
-
-
-MIN_COARSE_GRID = 8
-"""Coarse stages whose teacher grid would have fewer cells on the long side are skipped (a 4-cell descriptor
-of a photo matches almost any pose: on the tiny test scene such a stage sent a start at the truth 15° away)."""
-
-
-def coarse_stages(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings, near_plane: float) -> list[Stage]:
-    """The `pyramid` stages, coarsest first: the teacher at its input size divided by each factor (cells that
-    many times larger in the photo), the learning rate multiplied by it and decaying tenfold within the stage."""
-    stages = []
-    main_size = teacher_input_size(objective_teacher_config(reference, settings))
-    for factor in sorted(settings.pyramid, reverse=True):  # each >= 2 (settings.check_ranges, run by `register`)
-        stage_settings = replace(settings, teacher_input_size=main_size // factor)
-        objective = build_objective(reference, stage_settings)
-        if objective.teacher.grid_size < MIN_COARSE_GRID:
-            continue
-        photos = prepare_photos(reference, meta, stage_settings, objective)
-        lr = settings.lr * factor
-        stages.append(Stage(f"coarse-{main_size // factor}", PhotoLosses(reference, photos, objective, stage_settings, near_plane), settings.pyramid_steps, lr, lr / 10))
-    return stages
-
-
-def optimise_stage(
-    stage: Stage, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
-    on_step: Optional[Callable[[int, Sim3], None]], start_losses: Optional[Array] = None, anchor: Optional[Anchoring] = None,
-) -> tuple[Sim3, int]:
-    """Adam on delta for `stage.steps` steps from `start_ns` (meta -> dataparser), recorded in `history` from
-    step `first_step` on; (the estimate at the end, the next step number). `start_losses`: [P] the stage's
-    per-photo losses at `start_ns` if known (they seed the robust loss), else computed. `anchor` adds the
-    keypoint term, weighted by the stage's objective at its start."""
-    losses = stage.losses
-    seed = start_losses if start_losses is not None else objective_at(losses, start_ns)
-    rule = TrimmingRule.of(settings)
-    aggregator = RobustAggregator(rule, seed, warmup_steps(settings, stage.steps))
-    anchors = anchor.term(losses.objective.teacher.grid_size, rule.trimmed_mean(seed)) if anchor is not None else None
-    start = start_ns.to_torch()
-    centre = torch.from_numpy(update_centre(meta, start_ns, settings))
-    delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-    optimizer = torch.optim.Adam([delta], lr=stage.lr, eps=settings.adam_eps)
-    gamma = (stage.lr_final / stage.lr) ** (1.0 / max(stage.steps, 1)) if stage.lr_final else 1.0
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
-    batches = RetrimSchedule(len(losses.photos), settings, aggregator.warmup_steps)
-    for step in range(first_step, first_step + stage.steps):
-        batch = batches.next()
-        values, kept, weights = robust_step(losses, aggregator, Sim3.update(delta, centre) @ start, batch, optimizer, scheduler, anchors)
-        if not torch.isfinite(delta).all():
-            raise FloatingPointError(f"The registration of '{meta.name}' diverged to NaN at step {step} ({stage.name}).")
-        batches.counted(batch, kept)
-        history.record(step, batch, values, kept, weights, stage.name)
-        history.skip(batches.left_out(batch))
-        if on_step is not None:
-            on_step(step, current_estimate(delta, centre, start))
-    return current_estimate(delta, centre, start), first_step + stage.steps
-
-
-def warmup_steps(settings: RegistrationSettings, steps: int) -> int:
-    """Steps of a `steps`-step stage in which every photo counts before the robust rule trims (`trim_after`)."""
-    return int(round(settings.trim_after * steps))
-
-
-def update_centre(meta: MetaImage, transform: Sim3, settings: RegistrationSettings) -> Array:
-    """[3] the point (dataparser frame) the update rotates and scales about (`settings.update_centre`)."""
-    return meta.look_at_under(transform) if settings.update_centre == "look-at" else meta.centroid_under(transform)
-
-
-def objective_at(losses: PhotoLosses, meta_to_dataparser: Sim3, indices: Optional[list[int]] = None) -> Array:
-    """[P] per-photo losses of every photo (or [len(indices)] of those photos) under a numpy Sim3 (meta -> dataparser),
-    without gradients."""
-    with torch.no_grad():
-        indices = list(range(len(losses.photos))) if indices is None else indices
-        return torch.stack(losses(meta_to_dataparser.to_torch(), indices)[0]).double().numpy()
-
-
-def best_hypothesis(
-    stage: Stage, judge: PhotoLosses, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
-    on_step: Optional[Callable[[int, Sim3], None]], anchor: Optional[Anchoring] = None,
-) -> tuple[Sim3, list[dict], int]:
-    """Several starts around `start_ns`: the start and `settings.hypotheses` rotations of `hypothesis_deg` about
-    axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales`
-    factor. The `hypotheses_kept` with the lowest robust objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
-    stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
-
-    Scores are the robust objective plus, with an `anchor`, the keypoint term weighted as in `optimise_stage`.
-
-    Returns (winner, one record per optimised hypothesis, the next step number)."""
-    rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
-    candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypothesis_scales) for axis, transform in rotated]
-    coarse_score, judge_score = (objective_with_anchors(losses, start_ns, settings, anchor) for losses in (stage.losses, judge))
-    scores = [coarse_score(transform) for _, transform in candidates]
-    runs = []
-    for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses_kept)]:
-        own = History(history.names)
-        final, _ = optimise_stage(stage, meta, candidates[index][1], settings, own, first_step, on_step, anchor=anchor)
-        runs.append((final, judge_score(final), own, candidates[index][0], scores[index]))
-    winner, _, winner_history, _, _ = min(runs, key=lambda run: run[1])
-    history.extend(winner_history)
-    records = [
-        {"axis": axis, "scale": factor, "start_objective_coarse": start_score, "final_objective": final_score,
-         "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
-        for final, final_score, _, (axis, factor), start_score in runs
-    ]
-    return winner, records, first_step + stage.steps
-
-
-def objective_with_anchors(losses: PhotoLosses, start_ns: Sim3, settings: RegistrationSettings, anchor: Optional[Anchoring]) -> Callable[[Sim3], float]:
-    """numpy Sim3 (meta -> dataparser) -> the trimmed mean of `losses` plus the keypoint term (weighted by the
-    trimmed mean at `start_ns`, as a stage starting there would weigh it)."""
-    rule = TrimmingRule.of(settings)
-    dense = lambda transform: rule.trimmed_mean(objective_at(losses, transform))
-    if not anchor:
-        return dense
-    term = anchor.term(losses.objective.teacher.grid_size, dense(start_ns))
-    return lambda transform: dense(transform) + anchor.cost(term, transform)
-
-
-SCALE_SEARCH = (2.0, 17, 4 * SCALE_RESOLUTION, 9)
-"""The 1-D scale search of `scale_the_anchors_leave_free`: factors from 1/2 to 2 (17, log-spaced: 9% apart), then 9
-around the best, 0.08 of a log unit on either side (SCALE_RESOLUTION, 2%, apart)."""
-
-
-def scale_the_anchors_leave_free(
-    losses: PhotoLosses, anchor: Anchoring, meta: MetaImage, transform: Sim3, settings: RegistrationSettings,
-) -> tuple[Sim3, Optional[dict]]:
-    """When the keypoint anchors do not fix the Sim(3)'s scale (`keypoints.anchors_fix_scale`: the anchors of one photo,
-    or of photos taken from nearly one spot) and some photos have none, the Sim(3) (meta -> dataparser) scaled about
-    the anchored photos' mean camera centre by the factor the main stage's objective prefers; otherwise `transform`.
-
-    Scaling the world about a camera's centre leaves that camera's image unchanged, so one photo's anchors fix 6 of the
-    Sim(3)'s 7 degrees of freedom and leave the scale where the start put it (measured on 19 real 3-5-photo meta-images
-    with the anchors of one photo kept: ΔT grew with the start's scale error, median 0.033 / 0.096 / 0.186 scene units
-    from 5% / 15% / 30% scale errors, while ΔR stayed at 0.1-0.6°); so do the anchors of a photo and its zoomed twin
-    taken from the same spot. The other photos do see the scale: their cameras move along the rays from the anchored
-    ones. The search scores factors (SCALE_SEARCH) by the robust objective of those photos plus the keypoint term,
-    weighted as a stage weighs it (about one photo's centre that term does not change). The anchored photos' own losses
-    do not change either, and counted with the others they would fill the trimmed mean's kept half (their renders fit
-    best) and hide the scale from it: the anchors of a photo and its zoomed twin in a 4-photo meta-image left the
-    search flat. Returns the best, with a record of the search."""
-    term = anchor.term(losses.objective.teacher.grid_size, 1.0) if anchor else None
-    if not term or term.photos >= len(meta.photos):
-        return transform, None
-    motion, error = term.scale_motion_px(transform)
-    if anchors_fix_scale(motion, error):
-        return transform, None
-    centre = transform.apply(term.centres.mean(0).numpy())
-    unanchored = [index for index, photo in enumerate(losses.photos) if photo.name not in set(term.names)]
-    rule = TrimmingRule.of(settings)
-    dense = lambda candidate: rule.trimmed_mean(objective_at(losses, candidate, unanchored))
-    weight = dense(transform)  # the term's weight, as a stage starting here would set it (its cost is linear in it)
-    score = lambda candidate: dense(candidate) + weight * anchor.cost(term, candidate)
-
-    def scaled(log_factor: float) -> Sim3:
-        return Sim3.scaling_about(np.exp(log_factor), centre) @ transform
-
-    def best(log_factors: Array) -> tuple[float, float]:
-        scores = [score(scaled(value)) for value in log_factors]
-        index = min(range(len(scores)), key=lambda i: (scores[i], abs(log_factors[i])))  # ties: the smallest change
-        return float(log_factors[index]), float(scores[index])
-
-    widest, coarse, step, fine = SCALE_SEARCH
-    chosen, _ = best(np.linspace(-np.log(widest), np.log(widest), coarse))
-    chosen, value = best(chosen + np.linspace(-step, step, fine))
-    record = {"photos": term.names, "anchor_motion_px": round(motion, 3), "anchor_error_px": round(error, 3)}
-    return scaled(chosen), record | {"factor": round(float(np.exp(chosen)), 4), "objective": value}
-
-
-HYPOTHESIS_AGREEMENT_DEG = 2.0
-"""Optimised hypotheses that end within this rotation of the winner agree with it."""
-
-
-def hypotheses_around(start_ns: Sim3, meta: MetaImage, count: int, angle_deg: float) -> list[tuple[list[float], Sim3]]:
-    """`count` (axis, Sim3): `start_ns` rotated by `angle_deg` about the cameras' centroid, axes on a Fibonacci sphere."""
-    golden = np.pi * (3.0 - np.sqrt(5.0))
-    hypotheses = []
-    for k in range(count):
-        z = 1.0 - 2.0 * (k + 0.5) / count
-        axis = np.array([np.sqrt(1 - z * z) * np.cos(golden * k), np.sqrt(1 - z * z) * np.sin(golden * k), z])
-        delta = torch.zeros(7, dtype=torch.float64)
-        delta[:3] = torch.from_numpy(axis * np.radians(angle_deg))
-        hypotheses.append((axis.round(4).tolist(), moved_about_centroid(start_ns, meta, delta)))
-    return hypotheses
-
-
-def scaled_about_centroid(transform: Sim3, meta: MetaImage, factor: float) -> Sim3:
-    """`transform` (meta -> dataparser) followed by a scaling by `factor` about the moved cameras' centroid."""
-    if factor == 1.0:
-        return transform
-    delta = torch.zeros(7, dtype=torch.float64)
-    delta[6] = float(np.log(factor))
-    return moved_about_centroid(transform, meta, delta)
-
-
-def moved_about_centroid(transform: Sim3, meta: MetaImage, delta: Tensor) -> Sim3:
-    """U(delta) about the centroid of the cameras moved by `transform`, then `transform` (numpy Sim3s,
-    meta -> dataparser; delta [7] = (omega, nu, log s))."""
-    return (Sim3.update(delta, torch.from_numpy(meta.centroid_under(transform))) @ transform.to_torch()).numpy()
-
-
-def rotation_between_deg(a: Sim3, b: Sim3) -> float:
-    """Angle of the rotation between two similarities (degrees)."""
-    return rotation_angle_deg(np.asarray(a.rotation) @ np.asarray(b.rotation).T)
-
-
-def current_estimate(delta: Tensor, centre: Tensor, start: Sim3) -> Sim3:
-    """U(delta) o T0 as a detached numpy Sim3 (meta -> dataparser)."""
-    with torch.no_grad():
-        return (Sim3.update(delta, centre) @ start).numpy()

@@ -126,4 +126,3 @@ def load_reference(config_path: Path, device: str = "cpu") -> ReferenceModel:
             sh_degree=model.config.sh_degree,
         )
     return reference
-

@@ -63,7 +63,7 @@ class RegistrationSettings:
     """Photos rendered per step; 0 = all of them (paper)."""
     retrim_every: int = 1
     """Steps between re-decisions of which photos the robust rule counts: a step that re-decides renders every photo,
-    the steps between render only those it counted (`optimize.RetrimSchedule`). 1: every step (paper)."""
+    the steps between render only those it counted (`schedules.RetrimSchedule`). 1: every step (paper)."""
     teacher_input_size: Optional[int] = None
     """Teacher input size for the photos; default: the one the reference model was trained with (or the render
     teacher's own default when `render_teacher` names another one)."""

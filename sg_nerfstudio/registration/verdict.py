@@ -28,7 +28,7 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   (0.1 for 10%), but most inaccurate results of the benchmark (3 of wide-cpu's 5 from 30°) were rotations that
   keep the depths (docs/measurements.md "Depth agreement").
 - `scale_rise`, `scale_probe` (only when the keypoint anchors left the scale free and the registration searched it,
-  `optimize.scale_the_anchors_leave_free`): the 12 probes above keep the anchored photos' images where the anchors put
+  `scale_search.scale_the_anchors_leave_free`): the 12 probes above keep the anchored photos' images where the anchors put
   them and so cannot show a wrong scale; two more scale the Sim(3) by 1 ± `scale_probe` about the anchored photos' mean
   camera centre, sized to move the other photos' cameras by the translation probe's distance (median), and
   `scale_rise` is the smaller relative rise of those other photos' robust objective there. Below `FAILED_SHARPNESS`
@@ -174,7 +174,6 @@ def probes(rotation: float, translation: float) -> list[Tensor]:
                 delta[offset + axis] = sign * size
                 deltas.append(delta)
     return deltas
-
 
 
 def gather_evidence(

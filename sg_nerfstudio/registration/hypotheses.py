@@ -1,0 +1,88 @@
+"""Several starts around one (`hypotheses` > 0, wide-cpu): rotations about axes spread over the sphere and scales on a
+grid, scored by the first stage's robust objective; the best few are optimised over that stage and the one whose end
+the main stage's objective scores lowest wins (`best_hypothesis`). Transforms are numpy Sim3s meta -> dataparser.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sg_nerfstudio.geometry.meta_image import MetaImage
+from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
+from sg_nerfstudio.registration.keypoints import Anchoring
+from sg_nerfstudio.registration.objectives import PhotoLosses
+from sg_nerfstudio.registration.schedules import History
+from sg_nerfstudio.registration.settings import RegistrationSettings
+from sg_nerfstudio.registration.stages import Stage, objective_with_anchors, optimise_stage
+
+
+def best_hypothesis(
+    stage: Stage, judge: PhotoLosses, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
+    on_step: Optional[Callable[[int, Sim3], None]], anchor: Optional[Anchoring] = None,
+) -> tuple[Sim3, list[dict], int]:
+    """Several starts around `start_ns`: the start and `settings.hypotheses` rotations of `hypothesis_deg` about
+    axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales`
+    factor. The `hypotheses_kept` with the lowest robust objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
+    stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
+
+    Scores are the robust objective plus, with an `anchor`, the keypoint term weighted as in `stages.optimise_stage`.
+
+    Returns (winner, one record per optimised hypothesis, the next step number)."""
+    rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
+    candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypothesis_scales) for axis, transform in rotated]
+    coarse_score, judge_score = (objective_with_anchors(losses, start_ns, settings, anchor) for losses in (stage.losses, judge))
+    scores = [coarse_score(transform) for _, transform in candidates]
+    runs = []
+    for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses_kept)]:
+        own = History(history.names)
+        final, _ = optimise_stage(stage, meta, candidates[index][1], settings, own, first_step, on_step, anchor=anchor)
+        runs.append((final, judge_score(final), own, candidates[index][0], scores[index]))
+    winner, _, winner_history, _, _ = min(runs, key=lambda run: run[1])
+    history.extend(winner_history)
+    records = [
+        {"axis": axis, "scale": factor, "start_objective_coarse": start_score, "final_objective": final_score,
+         "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
+        for final, final_score, _, (axis, factor), start_score in runs
+    ]
+    return winner, records, first_step + stage.steps
+
+
+HYPOTHESIS_AGREEMENT_DEG = 2.0
+"""Optimised hypotheses that end within this rotation of the winner agree with it."""
+
+
+def hypotheses_around(start_ns: Sim3, meta: MetaImage, count: int, angle_deg: float) -> list[tuple[list[float], Sim3]]:
+    """`count` (axis, Sim3): `start_ns` rotated by `angle_deg` about the cameras' centroid, axes on a Fibonacci sphere."""
+    golden = np.pi * (3.0 - np.sqrt(5.0))
+    hypotheses = []
+    for k in range(count):
+        z = 1.0 - 2.0 * (k + 0.5) / count
+        axis = np.array([np.sqrt(1 - z * z) * np.cos(golden * k), np.sqrt(1 - z * z) * np.sin(golden * k), z])
+        delta = torch.zeros(7, dtype=torch.float64)
+        delta[:3] = torch.from_numpy(axis * np.radians(angle_deg))
+        hypotheses.append((axis.round(4).tolist(), moved_about_centroid(start_ns, meta, delta)))
+    return hypotheses
+
+
+def scaled_about_centroid(transform: Sim3, meta: MetaImage, factor: float) -> Sim3:
+    """`transform` (meta -> dataparser) followed by a scaling by `factor` about the moved cameras' centroid."""
+    if factor == 1.0:
+        return transform
+    delta = torch.zeros(7, dtype=torch.float64)
+    delta[6] = float(np.log(factor))
+    return moved_about_centroid(transform, meta, delta)
+
+
+def moved_about_centroid(transform: Sim3, meta: MetaImage, delta: Tensor) -> Sim3:
+    """U(delta) about the centroid of the cameras moved by `transform`, then `transform` (numpy Sim3s,
+    meta -> dataparser; delta [7] = (omega, nu, log s))."""
+    return (Sim3.update(delta, torch.from_numpy(meta.centroid_under(transform))) @ transform.to_torch()).numpy()
+
+
+def rotation_between_deg(a: Sim3, b: Sim3) -> float:
+    """Angle of the rotation between two similarities (degrees)."""
+    return rotation_angle_deg(np.asarray(a.rotation) @ np.asarray(b.rotation).T)

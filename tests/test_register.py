@@ -20,6 +20,7 @@ from sg_nerfstudio.features import TeacherConfig, build_teacher
 from sg_nerfstudio.geometry.frames import viewmat
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
+from sg_nerfstudio.registration.camera_fit import adjusted_cameras, fit_cameras
 from sg_nerfstudio.registration.depth_agreement import PointPixels, log_depth_ratios, summarise
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration import hypotheses, optimize, scale_search, schedules, stages, verdict
@@ -890,14 +891,14 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     wrong = with_wrong_focal_lengths(meta, 1.05)
     anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)  # in the world frame: no dataparser transform needed
     prealigned = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=1000)
-    fit = anchoring.fit_cameras(prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=True, pose_prior_scale=None)
+    fit = fit_cameras(anchoring, prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=True, pose_prior_scale=None)
     fitted, scales = fit.transform, fit.focal_scales
     assert fit.poses == {} and sorted(scales) == sorted(photo.name for photo in meta.photos)
     assert np.allclose(list(scales.values()), 1 / 1.05, atol=0.01)
     before, after = (pose_errors(meta.poses, transform, ground_truth).translation for transform in (prealigned, fitted))
     assert after < before / 3
     far_off = Anchoring(with_wrong_focal_lengths(meta, 1.5), anchors, Sim3.identity(), 1.0)  # beyond MAX_FOCAL_CHANGE
-    dropped = far_off.fit_cameras(prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=True, pose_prior_scale=None)
+    dropped = fit_cameras(far_off, prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=True, pose_prior_scale=None)
     assert dropped.transform is prealigned and dropped.focal_scales == {}
     assert fit.refused == "" and dropped.refused.startswith("a focal length x") and dropped.refused.endswith("(beyond 20%)")
     assert float(dropped.refused.split("x")[1].split()[0]) < 1 / 1.2  # the fitted scale, toward the true 1 / 1.5
@@ -937,7 +938,7 @@ def test_distortion_refinement_recovers_a_wrong_sfm_radial_coefficient(reference
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.0, seed=3)
     anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)
     prealigned = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=1000)
-    fit = anchoring.fit_cameras(prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=False,
+    fit = fit_cameras(anchoring, prealigned, wrong.look_at_under(prealigned), grid_size=32, iterations=1000, focal=False,
                                 pose_prior_scale=None, distortion=True)
     assert sorted(fit.radial_k1) == sorted(truth_k1)
     errors = [abs(fit.radial_k1[c] - truth_k1[c]) for c in truth_k1]
@@ -987,7 +988,7 @@ def test_pose_refinement_takes_one_wrongly_turned_photo_out_of_the_sim3(referenc
     truth = ground_truth @ align_cameras(np.stack(wrong.poses), np.stack(meta.poses)).transform
     anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)  # in the world frame: no dataparser transform needed
     rigid = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=1000)
-    fit = anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), grid_size=32, iterations=1000, focal=False, pose_prior_scale=10.0)
+    fit = fit_cameras(anchoring, rigid, wrong.look_at_under(rigid), grid_size=32, iterations=1000, focal=False, pose_prior_scale=10.0)
     assert sorted(fit.poses) == sorted(photo.name for photo in meta.photos) and fit.focal_scales == {}
     moved = wrong.with_poses(fit.poses)
     shift = align_cameras(np.stack(wrong.poses), np.stack(moved.poses)).transform
@@ -1077,7 +1078,7 @@ def at_resolution(meta, anchors, factor: int):
 
 def test_the_camera_fit_does_not_depend_on_the_photos_resolution(reference, meta, ground_truth):
     """The camera fit weighs keypoints in teacher cells (a fraction of the photo) and holds focal lengths, k1 and poses by
-    the SfM's own uncertainty at the keypoints' noise (`Anchoring.intrinsics_priors`, `rotation_priors`). The SfM's
+    the SfM's own uncertainty at the keypoints' noise (`camera_fit.intrinsics_priors`, `rotation_priors`). The SfM's
     covariance assumes 1 px of noise, so at twice the resolution it is twice as sure of everything; the keypoints' noise
     in pixels doubles with it, and the fit of a meta-image with wrong focal lengths and k1 ends at the same Sim(3), focal
     scales, k1 and poses whether its photos and keypoints are 48 or 96 px (2e-9 apart; with the focal and k1 priors held
@@ -1093,7 +1094,7 @@ def test_the_camera_fit_does_not_depend_on_the_photos_resolution(reference, meta
         scaled, keypoints = at_resolution(wrong, anchors, factor)
         anchoring = Anchoring(scaled, keypoints, Sim3.identity(), 1.0)
         prealigned = anchoring.prealign(ground_truth, scaled.look_at_under(ground_truth), grid_size=32, steps=1000)
-        fits.append(anchoring.fit_cameras(prealigned, scaled.look_at_under(prealigned), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True))
+        fits.append(fit_cameras(anchoring, prealigned, scaled.look_at_under(prealigned), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True))
     small, large = fits
     assert small.focal_scales and small.radial_k1 and small.poses, "the fit was dropped"
     assert max(abs(small.focal_scales[n] - 1.0) for n in small.focal_scales) > 0.01  # it did move them
@@ -1106,7 +1107,8 @@ def test_a_focal_change_widens_the_centre_shift_a_photo_may_take():
     """A photo whose SfM focal length was some percent wrong stood as many percent too near or far from a facade: the
     plausibility limit lets the camera fit move it by its depth times the focal change on top of MAX_POSE_CHANGE_DEG;
     the same shift without a focal change, or a turn beyond the limit, is refused."""
-    from sg_nerfstudio.registration.keypoints import MAX_POSE_CHANGE_DEG, FreeCameras, implausibility
+    from sg_nerfstudio.registration.camera_fit import MAX_POSE_CHANGE_DEG, implausibility
+    from sg_nerfstudio.registration.keypoints import FreeCameras
 
     depth, sigma = 10.0, np.radians(0.5)
     pose_sigma = torch.tensor([[sigma] * 3 + [depth * sigma] * 3], dtype=torch.float64)
@@ -1133,19 +1135,20 @@ def test_camera_fit_ends_where_the_priors_last_digits_do_not_matter(reference, m
     plausibility limit from run to run)."""
     from sg_nerfstudio.registration.keypoints import Anchoring
 
-    from sg_nerfstudio.registration.keypoints import FIT_KERNEL_FRACTION, FreeCameras, fit_jointly, freedom
+    from sg_nerfstudio.registration.camera_fit import fit_jointly, freedom, intrinsics_priors, rotation_priors
+    from sg_nerfstudio.registration.keypoints import FIT_KERNEL_FRACTION, FreeCameras
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.1, seed=7)
     wrong = with_one_photo_turned(meta, 1.0)
     anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)
     rigid = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=300)
-    fits = [anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 20, focal=True, pose_prior_scale=scale) for scale in (10.0, 10.0 * (1 + 1e-9))]
+    fits = [fit_cameras(anchoring, rigid, wrong.look_at_under(rigid), 32, 20, focal=True, pose_prior_scale=scale) for scale in (10.0, 10.0 * (1 + 1e-9))]
     assert fits[0].poses and fits[0].focal_scales, "the fit was dropped"
 
     # stationary: a Newton step on every fitted parameter has less than 1e-6 left to go
     term = anchoring.term(32, 1.0, FIT_KERNEL_FRACTION * 32)
-    focal_priors = anchoring.intrinsics_priors(FIT_KERNEL_FRACTION)[0]
-    focal, pose_sigma = freedom(focal_priors, term.camera_ids), term.pose_sigma(anchoring.rotation_priors(10.0), focal_priors)
+    focal_priors = intrinsics_priors(anchoring, FIT_KERNEL_FRACTION)[0]
+    focal, pose_sigma = freedom(focal_priors, term.camera_ids), term.pose_sigma(rotation_priors(anchoring, 10.0), focal_priors)
     centre = torch.from_numpy(wrong.look_at_under(rigid))
     fitted, free = fit_jointly(term, rigid, centre.numpy(), 20, focal, pose_sigma)
     start = torch.cat([torch.zeros(7, dtype=torch.float64), free.log_focal, (free.pose_corrections / pose_sigma).reshape(-1)])
@@ -1177,21 +1180,21 @@ def test_the_camera_adjustment_moves_every_photo_with_its_own_tracks(reference, 
     wrong = with_wrong_focal_lengths(with_one_photo_turned(meta, 1.0), 1.05)
     anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)  # in the world frame: no dataparser transform needed
     rigid = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=1000)
-    fit = anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True, adjustment=True)
+    fit = fit_cameras(anchoring, rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True, adjustment=True)
     assert sorted(fit.poses) == sorted(fit.focal_scales) == sorted(photo.name for photo in meta.photos)
     assert np.allclose(list(fit.focal_scales.values()), 1 / 1.05, atol=0.001), fit.focal_scales
     true_cameras = np.stack([ground_truth.move_camera(pose) for pose in meta.poses])  # reference world
     moved_off, _ = camera_residuals(fit.transform, np.stack(wrong.with_poses(fit.poses).poses), true_cameras)
     rigid_off, _ = camera_residuals(rigid, np.stack(wrong.poses), true_cameras)
     assert rigid_off[0] > 0.5 and moved_off.max() < 0.01, (rigid_off, moved_off)
-    priors = anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True)
+    priors = fit_cameras(anchoring, rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, distortion=True)
     assert turned not in priors.poses
 
     one_photo = Anchoring(wrong, anchors[:1], Sim3.identity(), 1.0)  # its anchors leave the scale free: the prior fit
     assert not one_photo.fix_scale(rigid, 32)
-    assert sorted(one_photo.fit_cameras(rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, adjustment=True).poses) == [anchors[0].name]
+    assert sorted(fit_cameras(one_photo, rigid, wrong.look_at_under(rigid), 32, 100, focal=True, pose_prior_scale=1.0, adjustment=True).poses) == [anchors[0].name]
     far_off = Anchoring(with_wrong_focal_lengths(meta, 1.5), anchors, Sim3.identity(), 1.0)
-    kept = far_off.adjusted_cameras(rigid, focal=True, distortion=False)
+    kept = adjusted_cameras(far_off, rigid, focal=True, distortion=False)
     assert kept.transform is rigid and kept.poses == {} and kept.focal_scales == {}
     radial = pycolmap.Reconstruction(meta.reconstruction)
     camera = next(iter(radial.cameras.values()))
@@ -1224,7 +1227,7 @@ def test_stages_after_the_pose_fit_keep_its_optimum(reference, meta, ground_trut
     wrong = with_one_photo_turned(meta, 1.0)
     anchoring = Anchoring(wrong, anchors, Sim3.identity(), 1.0)
     rigid = anchoring.prealign(ground_truth, wrong.look_at_under(ground_truth), grid_size=32, steps=1000)
-    fit = anchoring.fit_cameras(rigid, wrong.look_at_under(rigid), grid_size=32, iterations=1000, focal=False, pose_prior_scale=10.0)
+    fit = fit_cameras(anchoring, rigid, wrong.look_at_under(rigid), grid_size=32, iterations=1000, focal=False, pose_prior_scale=10.0)
     moved = wrong.with_poses(fit.poses)
     drift = {}
     for narrow in (True, False):

@@ -160,7 +160,7 @@ class MetaImage:
 
     def camera_focal_scales(self) -> dict[int, float]:
         """COLMAP camera id -> the `focal_scale` of its photos, for the cameras whose photos were rescaled (photos
-        that share a camera are rescaled together: `Anchoring.fit_cameras`)."""
+        that share a camera are rescaled together: `registration.camera_fit.fit_cameras`)."""
         return {int(p.camera.camera_id): p.focal_scale for p in self.photos if p.focal_scale != 1.0}
 
     def centroid_under(self, transform: Sim3) -> Array:

@@ -1,6 +1,6 @@
 """The camera fit as one bundle adjustment: the meta-image's own SfM observations and the keypoint anchors, in pycolmap.
 
-`Anchoring.fit_cameras` with `camera_fit: adjustment` (fast-cpu). The meta-image's SfM model is moved into the
+`camera_fit.fit_cameras` with `camera_fit: adjustment` (fast-cpu). The meta-image's SfM model is moved into the
 reference world by the pre-aligned Sim(3); each photo's keypoint anchors (registration/keypoints.py: its RANSAC-verified
 SIFT matches with points the reference triangulated) join it as observations of *constant* 3-D points; and COLMAP's
 bundle adjuster refines every photo's pose, each camera's focal length and radial k1 and the model's own points together,
@@ -8,7 +8,7 @@ under a Cauchy loss of FIT_KERNEL_FRACTION of the photo's long side (as the prio
 fix the frame (the reference's), the model's own tracks hold the photos to one another exactly as its SfM did, with
 every correlation between a photo's focal length, distortion, depth and orientation that a 3-photo SfM leaves weak.
 
-Why not the prior fit (`keypoints.fit_jointly`): it holds each photo's focal length, k1, rotation and centre by its own
+Why not the prior fit (`camera_fit.fit_jointly`): it holds each photo's focal length, k1, rotation and centre by its own
 independent prior (the SfM's marginal standard deviations). A wrong focal length in a 3-photo SfM comes with a wrong
 depth, k1 and relative rotation together; independent priors charge that joint move for every parameter it touches. On
 Strecha fountain-P11's fourth split (meta-image 0005-0008, SfM focal lengths 7-16% long) the prior fit left them 2-6%
@@ -18,7 +18,7 @@ long and the registration's ΔT at 0.057; this adjustment brings them within 0.3
 The result is a `CameraFit` like the prior fit's: the Sim(3) that maps the meta-image's own cameras onto the adjusted
 ones (`geometry.alignment.align_cameras`, the rule of the benchmarks' ground truth) and, relative to it, each photo's
 moved pose, focal scale and k1. Every photo moves, with anchors or not (its own observations carry it). Three cases are
-left to the prior fit (`Anchoring.fit_cameras` decides): cameras of models with more distortion terms than k1 (RADIAL,
+left to the prior fit (`camera_fit.fit_cameras` decides): cameras of models with more distortion terms than k1 (RADIAL,
 OPENCV, fisheye, ...), as COLMAP's adjuster frees all of a camera's extra parameters or none; multi-camera rigs; and anchors that leave
 the scale free (one photo's, or photos taken from one spot), about which the adjusted model's scale is a direction the
 solver ends anywhere along. Frames: the meta-image frame, the reference world (COLMAP model) of

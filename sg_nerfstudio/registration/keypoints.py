@@ -22,18 +22,10 @@ render-free pre-alignment, `Anchoring.prealign`, for far starts). Photos
 without correspondences (night, heavy occlusion, too few matches) simply contribute no keypoint term; a
 meta-image without any is registered by the dense objective alone (the paper's method).
 
-With `refine_focal` the render-free pre-alignment is followed by a joint fit of the Sim(3) and one focal-length scale
-per COLMAP camera (`Anchoring.fit_cameras`): the term then projects with each photo's focal length times its
-scale, and every stage after it renders with those focal lengths (`Photo.focal_scale`). With `refine_photo_poses` the
-same fit also moves each photo's camera inside the meta-image by a small rotation and centre shift, each held by a
-prior (`pose_sigma`): the SfM of a few photos gets their relative poses a fraction of a degree wrong, and a rigid fit
-spreads that error into the Sim(3). With `refine_distortion` it also fits each camera's first radial coefficient k1, the
-keypoints of those cameras then compared in the distorted photo (`KeypointTerm.distorted_errors`), and later stages
-compare renders with the photos undistorted again with it. Later stages render the moved cameras, and the registration reports the Sim(3)
-that maps the meta-image's own cameras onto the moved ones (`geometry.alignment.align_cameras`, the rule the ground
-truth of the benchmarks is made by) composed with the final one. Once photos were moved, the stages after the fit
-weigh the keypoints with the fit's narrow kernel (`Anchoring.narrow`): under the wider `KERNEL_CELLS` the keypoints a
-pixel or two off that the fit discounted pull the Sim(3) away from where the fit left it.
+The photos' own cameras fitted to the anchors with the Sim(3) (focal lengths, poses, radial k1) are
+registration/camera_fit.py's; once photos were moved, the stages after the fit weigh the keypoints with the fit's
+narrow kernel (`Anchoring.narrow`): under the wider `KERNEL_CELLS` the keypoints a pixel or two off that the fit
+discounted pull the Sim(3) away from where the fit left it.
 
 Frames: keypoints are pixels of the original (distorted) photo, COLMAP convention, undistorted here once with
 the photo's pycolmap camera to normalised image coordinates; points are in the *reference world* frame (the
@@ -42,32 +34,21 @@ reference's COLMAP model) and go to the dataparser frame with the reference's `w
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from sg_nerfstudio.geometry.meta_image import MetaImage, intrinsics_uncertainty, radial_k1_index, relative_rotation_uncertainty
+from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
-from sg_nerfstudio.registration.anchored_adjustment import adjust_with_anchors, adjustable, pose_changes
-from sg_nerfstudio.registration.least_squares import RobustResiduals, levenberg_marquardt
+from sg_nerfstudio.registration.least_squares import RobustResiduals
 
 KERNEL_CELLS = 0.5
 """Scale c of the Cauchy kernel in teacher cells (16 px of a 1024-px photo at a 32-cell grid): about the
 initialiser's RANSAC threshold (12 px of a 640-px photo), so that its inliers sit in the quadratic part."""
-MAX_FOCAL_CHANGE = 0.2
-"""A fitted focal scale outside [1 / (1 + this), 1 + this] is not believed: the focal fit is dropped (every photo keeps
-its SfM focal length and the pose stays the pre-aligned one)."""
-MAX_K1_CHANGE = 0.2
-"""A fitted change of a camera's first radial coefficient beyond this is not believed (`refine_distortion`): the camera
-fit is dropped whole. Real lenses' k1 lies within about +-0.3; the 3-photo models' SfM put it 0.03-0.18 off."""
-MAX_POSE_CHANGE_DEG = 2.0
-"""A photo's fitted pose correction (`refine_photo_poses`) beyond this rotation, or beyond a centre shift that moves its
-scene as much (its median point depth times the angle) plus the depth change its focal change implies (`implausibility`), is
-not believed: the camera fit is dropped whole."""
 FIT_KERNEL_FRACTION = 1 / 160
 """Scale of the Cauchy kernel while photos' poses are fitted (`refine_photo_poses`), as a fraction of the photo's long
 side (4 px of a 640-px photo, 0.2 teacher cells at 32): near SIFT's localisation error, so that a photo's pose follows
@@ -311,21 +292,6 @@ def corrected_rotations_and_centres(rotations: Tensor, centres: Tensor, correcti
     return rotations @ torch.linalg.matrix_exp(skew), centres + torch.einsum("pji,pj->pi", rotations, corrections[:, 3:])
 
 
-@dataclass
-class CameraFit:
-    """The result of `Anchoring.fit_cameras`: the Sim(3) (numpy, meta -> dataparser) fitted with the cameras, {photo name:
-    focal_scale} of every photo of a refined camera, {photo name: [3, 4] cam_from_meta} of every moved photo and
-    {COLMAP camera id: k1} of every camera whose radial distortion was refined."""
-
-    transform: Sim3
-    focal_scales: dict[str, float] = field(default_factory=dict)
-    poses: dict[str, np.ndarray] = field(default_factory=dict)
-    radial_k1: dict[int, float] = field(default_factory=dict)
-    refused: str = ""
-    """Why the fitted cameras were not kept (`beyond_limits`: the anchors asked more of the meta-image's own cameras
-    than an SfM error of a few photos plausibly is), "" when they were or nothing was fitted. Verdict evidence."""
-
-
 class Anchoring:
     """The keypoints of one registration and how each stage weighs them: `term` builds a stage's
     `KeypointTerm` on that stage's teacher grid, weighted by `keypoint_weight` x the stage's dense objective at
@@ -362,131 +328,11 @@ class Anchoring:
             return start
         return minimise_keypoint_term(term, start, centre, steps)
 
-    def fit_cameras(
-        self, start: Sim3, centre: np.ndarray, grid_size: int, iterations: int, focal: bool, pose_prior_scale: Optional[float],
-        distortion: bool = False, adjustment: bool = False,
-    ) -> CameraFit:
-        """The keypoint term minimised over the Sim(3) *and* the meta-image's cameras, from `start` (best already
-        pre-aligned): with `focal`, one focal-length scale per COLMAP camera of the photos with keypoints (one per photo
-        where, as for Internet photos, each has its own); with `pose_prior_scale`, each such photo's pose by a small
-        rotation and centre shift under a prior of that times its SfM rotation uncertainty (`rotation_priors`,
-        `KeypointTerm.pose_sigma`), the keypoints then weighed with the narrower kernel of FIT_KERNEL_FRACTION. `start`
-        alone when a fitted scale is beyond MAX_FOCAL_CHANGE or a correction beyond MAX_POSE_CHANGE_DEG (keypoints that
-        cannot tell focal length from depth, or one photo from the others), or when nothing could be freed.
-
-        A 3-photo SfM model's focal lengths can be a few percent off and its relative poses a fraction of a degree
-        (docs/measurements.md "Per-photo focal lengths", "Per-photo poses"); the Sim(3) cannot absorb either, and an image-based
-        alignment then places each camera nearer or farther, or turns the whole group to split one photo's error. Each
-        focal length's prior is the SfM's own uncertainty at the keypoints' noise (`intrinsics_priors`): a focal length the
-        SfM fixed well (many photos) barely moves, a poorly fixed one follows the keypoints; cameras whose uncertainty
-        cannot be estimated keep theirs, and so do photos whose orientation uncertainty cannot be. Every photo of a refined
-        camera, keypoints or not, renders with it (as the aligned model's camera); photos without keypoints keep their
-        pose. With `distortion`, each camera of RADIAL_MODELS also fits its first radial coefficient k1 under the SfM's
-        own uncertainty of it, also at the keypoints' noise (the keypoints compared in the distorted photo,
-        `KeypointTerm.distorted_errors`): a 3-photo model's k1 can be off by a few hundredths, which moves its cameras
-        along their axes as a wrong focal length does.
-
-        With `adjustment` (and `pose_prior_scale` given: the photos' poses are fitted), where every camera's model has at
-        most k1 (`anchored_adjustment.adjustable`) and the anchors fix the scale (`anchors_fix_scale` at `start`), the fit
-        is instead one bundle adjustment of the meta-image's own observations with the anchors (`anchored_adjustment`):
-        no priors, every photo moved, `pose_prior_scale` unused. Anchors of one photo, or of photos taken from one spot,
-        leave the model's scale about them free, a direction the adjuster would end anywhere along (fountain-P11
-        0005-0008 with one photo's anchors: 0.90 and 0.99 of the truth's scale from starts at 1.00 and 1.10); the prior
-        fit moves only the anchored photos and the registration then searches that scale
-        (`scale_search.scale_the_anchors_leave_free`)."""
-        if adjustment and pose_prior_scale is not None and adjustable(self.meta) and self.fix_scale(start, grid_size):
-            return self.adjusted_cameras(start, focal, distortion)
-        kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS
-        term = self.term(grid_size, 1.0, kernel)
-        if not term or iterations <= 0:
-            return CameraFit(start)
-        focal_sigma, k1_sigma = self.intrinsics_priors(kernel / grid_size) if focal or distortion else ({}, {})
-        focal_free = freedom(focal_sigma, term.camera_ids) if focal else None
-        k1_free = freedom(k1_sigma, term.camera_ids) if distortion else None
-        pose_sigma = term.pose_sigma(self.rotation_priors(pose_prior_scale), focal_sigma if focal else None) if pose_prior_scale is not None else None
-        if focal_free is None and pose_sigma is None and k1_free is None:
-            return CameraFit(start)
-        fitted = fit_jointly(term, start, centre, iterations, focal_free, pose_sigma, k1_free)
-        if fitted is None:
-            return CameraFit(start)
-        moved, free = fitted
-        refused = implausibility(free, term.camera_of)
-        if refused:
-            return CameraFit(start, refused=refused)  # the Sim(3) was fitted with those cameras: neither is kept
-        fit = CameraFit(moved)
-        if free.log_focal is not None:
-            change = {camera_id: float(torch.exp(value)) for camera_id, value, own in zip(term.camera_ids, free.log_focal, focal_free[1]) if own}
-            fit.focal_scales = {p.name: p.focal_scale * change[int(p.camera.camera_id)] for p in self.meta.photos if int(p.camera.camera_id) in change}
-        if free.k1_delta is not None:
-            cameras = self.meta.reconstruction.cameras
-            fit.radial_k1 = {
-                camera_id: float(cameras[camera_id].params[radial_k1_index(cameras[camera_id])] + float(delta))
-                for camera_id, delta, own in zip(term.camera_ids, free.k1_delta, k1_free[1]) if own
-            }
-        if free.pose_corrections is not None:
-            rotations, centres = corrected_rotations_and_centres(term.rotations, term.centres, free.pose_corrections)
-            translations = -torch.einsum("pij,pj->pi", rotations, centres)
-            moved = free.pose_sigma[:, 0] > 0
-            fit.poses = {name: torch.cat([r, t[:, None]], 1).numpy() for name, r, t, m in zip(term.names, rotations, translations, moved) if m}
-        return fit
-
     def fix_scale(self, meta_to_dataparser: Sim3, grid_size: int) -> bool:
         """Whether the anchors fix the Sim(3)'s scale under `meta_to_dataparser` (numpy): `anchors_fix_scale` of the
         term's `scale_motion_px`."""
         term = self.term(grid_size, 1.0)
         return bool(term) and anchors_fix_scale(*term.scale_motion_px(meta_to_dataparser))
-
-    def adjusted_cameras(self, start: Sim3, focal: bool, distortion: bool) -> CameraFit:
-        """`fit_cameras` by `anchored_adjustment.adjust_with_anchors` from `start` (numpy Sim3, meta -> dataparser); `start`
-        alone when the adjuster fails or moves a camera beyond what `implausibility` allows the prior fit (a focal change
-        beyond MAX_FOCAL_CHANGE, a k1 change beyond MAX_K1_CHANGE, a turn beyond MAX_POSE_CHANGE_DEG or a centre shift
-        beyond its depth times that angle plus the meta-image's largest focal change). The largest, not the photo's own:
-        the adjusted model is compared with the given one after the Sim(3) that best maps one onto the other, which
-        spreads one photo's depth change over all of them (fountainocc 0005-0009: a focal length 13% shorter moved the
-        two photos whose focal lengths stayed within 1.3% by 5.5% and 7.4% of their depth)."""
-        adjusted = adjust_with_anchors(self.meta, self.keypoints, self.world_to_dataparser, start, focal, distortion, FIT_KERNEL_FRACTION)
-        if adjusted is None:
-            return CameraFit(start)
-        transform, poses, focal_change, radial_k1 = adjusted
-        cameras = self.meta.reconstruction.cameras
-        angles, shifts, depths = pose_changes(self.meta, poses)
-        depth_change = max((abs(np.log(change)) for change in focal_change.values()), default=0.0)
-        refused = beyond_limits(
-            list(focal_change.values()), [k1 - cameras[c].params[radial_k1_index(cameras[c])] for c, k1 in radial_k1.items()],
-            list(angles), bool((shifts > depths * (np.radians(MAX_POSE_CHANGE_DEG) + depth_change)).any()),
-        )
-        if refused:
-            return CameraFit(start, refused=refused)
-        focal_scales = {p.name: p.focal_scale * focal_change[int(p.camera.camera_id)] for p in self.meta.photos} if focal_change else {}
-        return CameraFit(transform, focal_scales, poses, radial_k1)
-
-    def rotation_priors(self, scale: float) -> dict[str, float]:
-        """{photo name: prior standard deviation (degrees) of its rotation correction}: `scale` times how well the
-        meta-image's SfM determined its orientation relative to the other photos (`relative_rotation_uncertainty`),
-        at the noise as which the pose fit's kernel (FIT_KERNEL_FRACTION) weighs the keypoints (`keypoint_noise_px`)."""
-        sides = {photo.name: max(photo.camera.width, photo.camera.height) for photo in self.meta.photos}
-        return {
-            name: scale * sigma * keypoint_noise_px(sides[name], FIT_KERNEL_FRACTION)
-            for name, sigma in relative_rotation_uncertainty(self.meta.reconstruction).items() if name in sides
-        }
-
-    def intrinsics_priors(self, kernel_fraction: float) -> tuple[dict[int, float], dict[int, float]]:
-        """({COLMAP camera id: prior relative standard deviation of its focal length}, {camera id: prior standard deviation
-        of its k1}): the meta-image SfM's own uncertainties (`intrinsics_uncertainty`, at 1 px of noise) at the noise as
-        which a fit under the Cauchy kernel of `kernel_fraction` of the long side weighs the keypoints
-        (`keypoint_noise_px`), as `rotation_priors` holds the poses.
-
-        Held at 1 px against keypoints weighed as 2.8-3.5 px (photos of 640-800 px), the priors counted 8-12 times the
-        information the SfM had. Measured on the 13 real 3-5-photo meta-images of Strecha's fountain-P11 in
-        docs/measurements.md (laser-calibrated intrinsics, no distortion; colmap starts): of the SfM focal-length error
-        of the 16 photos more than 3% off, the fit removed 55% on average before and 73% at the keypoints' noise; |k1|
-        went 0.016 -> 0.011 (worst 0.100 -> 0.030), ΔT 0.027 -> 0.017 mean (closer on 7, further on none), ΔR 0.22 ->
-        0.18° ("The camera fit's priors at the keypoints' noise"). On small photos the priors tighten instead (48-px test
-        photos: 0.5 px)."""
-        focal, k1 = intrinsics_uncertainty(self.meta.reconstruction)
-        cameras = self.meta.reconstruction.cameras
-        noise = {camera_id: keypoint_noise_px(max(camera.width, camera.height), kernel_fraction) for camera_id, camera in cameras.items()}
-        return {c: sigma * noise[c] for c, sigma in focal.items()}, {c: sigma * noise[c] for c, sigma in k1.items()}
 
     def for_meta(self, meta: MetaImage, narrow: Optional[bool] = None) -> "Anchoring":
         """The same keypoints for `meta` (e.g. its photos with new focal scales); `narrow` as this one's unless given."""
@@ -498,23 +344,6 @@ class Anchoring:
             return 0.0
         with torch.no_grad():
             return float(term(meta_to_dataparser.to_torch()))
-
-
-def keypoint_noise_px(long_side: float, kernel_fraction: float) -> float:
-    """The standard deviation per coordinate (pixels of a photo whose long side is `long_side`) as which a fit under the
-    Cauchy kernel of `kernel_fraction` of the long side weighs each keypoint: near zero error rho(r / c) ~ r^2 / c^2, a
-    Gaussian of c / sqrt(2) per coordinate (FIT_KERNEL_FRACTION: 2.8 px of a 640-px photo). The SfM covariances assume 1
-    px of noise; the priors that hold the fitted cameras are scaled by this so that prior and keypoints speak of the same
-    noise."""
-    return kernel_fraction * long_side / np.sqrt(2.0)
-
-
-def freedom(uncertainty: dict[int, float], camera_ids: list[int]) -> Optional[tuple[Tensor, Tensor]]:
-    """([G] prior sigma per camera of `camera_ids` from the SfM's `uncertainty` {camera id: sigma}, [G] bool: free, the
-    cameras it has a sigma for); None if none is free."""
-    sigma = torch.tensor([uncertainty.get(camera_id, np.nan) for camera_id in camera_ids], dtype=torch.float64)
-    free = torch.isfinite(sigma)
-    return (torch.where(free, sigma, torch.ones_like(sigma)), free) if bool(free.any()) else None
 
 
 def lens_parameters(camera) -> np.ndarray:
@@ -548,83 +377,3 @@ def minimise_keypoint_term(term: KeypointTerm, start: Sim3, centre: np.ndarray, 
         return start
     with torch.no_grad():
         return (Sim3.update(delta, centre_t) @ base).numpy()
-
-
-def fit_jointly(
-    term: KeypointTerm, start: Sim3, centre: np.ndarray, iterations: int,
-    focal: Optional[tuple[Tensor, Tensor]] = None, pose_sigma: Optional[Tensor] = None,
-    k1: Optional[tuple[Tensor, Tensor]] = None,
-) -> Optional[tuple[Sim3, FreeCameras]]:
-    """Levenberg-Marquardt (`least_squares.levenberg_marquardt`, at most `iterations`) on delta [7] about `centre` and,
-    with `focal` ([G] prior sigmas, [G] bool free), the log focal scales of the term's cameras marked free, with
-    `pose_sigma` [P', 6] the photos' pose corrections (in units of their prior), with `k1` ([G] prior sigmas, [G] bool
-    free) the changes of the cameras' first radial coefficients, each under its prior: (the numpy Sim3 meta ->
-    dataparser, the fitted `FreeCameras`, focal scales and k1 changes 0 where not free); None when the optimisation
-    diverged. From a pre-aligned start the problem is smooth and small (7 + G + 6 P' + G parameters) but
-    ill-conditioned (a common turn of every photo against the Sim(3), focal length against depth): L-BFGS had not
-    converged in 1000 iterations on the real-photo meta-images, and its end point moved with the last digits of the
-    priors (docs/measurements.md "The camera fit, solved by Levenberg-Marquardt")."""
-    base = start.to_torch()
-    centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
-    cameras, photos = len(term.camera_ids), term.photos
-    sizes = [7, cameras if focal is not None else 0, 6 * photos if pose_sigma is not None else 0, cameras if k1 is not None else 0]
-
-    def unpack(x: Tensor) -> tuple[Tensor, FreeCameras]:
-        delta, log_focal, corrections, k1_delta = torch.split(x, sizes)
-        return delta, FreeCameras(
-            log_focal * focal[1].double() if focal is not None else None, focal[0] if focal is not None else None,
-            corrections.reshape(photos, 6) * pose_sigma if pose_sigma is not None else None, pose_sigma,
-            k1_delta * k1[1].double() if k1 is not None else None, k1[0] if k1 is not None else None,
-        )
-
-    def residuals(x: Tensor) -> RobustResiduals:
-        delta, free = unpack(x)
-        return term.robust_residuals(Sim3.update(delta, centre_t) @ base, free)
-
-    solution = levenberg_marquardt(residuals, torch.zeros(sum(sizes), dtype=torch.float64), iterations)
-    if not bool(torch.isfinite(solution.x).all()):
-        return None
-    delta, free = unpack(solution.x)
-    return (Sim3.update(delta, centre_t) @ base).numpy(), free
-
-
-def beyond_limits(focal_scales: list[float], k1_changes: list[float], turns_deg: list[float], shifted_too_far: bool) -> str:
-    """The first of a camera fit's changes that is not believed, as a phrase for the verdict ("" when all are within the
-    limits): a focal scale outside [1 / (1 + MAX_FOCAL_CHANGE), 1 + MAX_FOCAL_CHANGE], a k1 change beyond MAX_K1_CHANGE,
-    a photo turned beyond MAX_POSE_CHANGE_DEG, or a centre shifted beyond the allowance the caller measured
-    (`shifted_too_far`)."""
-    for scale in focal_scales:
-        if abs(np.log(scale)) > np.log1p(MAX_FOCAL_CHANGE):
-            return f"a focal length x{scale:.2f} (beyond {MAX_FOCAL_CHANGE:.0%})"
-    for change in k1_changes:
-        if abs(change) > MAX_K1_CHANGE:
-            return f"a k1 change of {change:+.2f} (beyond {MAX_K1_CHANGE})"
-    for turn in turns_deg:
-        if turn > MAX_POSE_CHANGE_DEG:
-            return f"a photo turned {turn:.1f}° (beyond {MAX_POSE_CHANGE_DEG:.0f}°)"
-    if shifted_too_far:
-        return f"a photo moved beyond its depth times {MAX_POSE_CHANGE_DEG:.0f}° and its focal change"
-    return ""
-
-
-def implausibility(free: FreeCameras, camera_of: Tensor) -> str:
-    """`beyond_limits` of fitted cameras ("" when they are plausible): their focal scales, k1 changes and pose
-    corrections (`camera_of` [P'] each photo's index into the cameras). A photo's centre
-    shift is compared with its median point depth times MAX_POSE_CHANGE_DEG plus the depth change its camera's focal
-    change implies (depth x |log focal scale|): a photo whose SfM focal length was wrong by some percent stood as many
-    percent nearer or farther from a facade in the SfM, and the fit must move it by that much to keep its image (Strecha
-    fountain 0005, SfM focal length 11% long: the fit's 6% shorter focal length and 6% shift were refused with the
-    angle alone)."""
-    focal = torch.exp(free.log_focal).tolist() if free.log_focal is not None else []
-    k1 = free.k1_delta.tolist() if free.k1_delta is not None else []
-    turns, shifted = [], False
-    if free.pose_corrections is not None:
-        limit = np.radians(MAX_POSE_CHANGE_DEG)
-        turn, shift = free.pose_corrections[:, :3].norm(dim=1), free.pose_corrections[:, 3:].norm(dim=1)
-        depth_change = free.log_focal.abs()[camera_of] if free.log_focal is not None else torch.zeros_like(turn)
-        # depth = the centre's sigma across the optical axis (index 3: depth x angle) / rotation sigma
-        # (`KeypointTerm.pose_sigma`), so shift > depth x allowance reads as below;
-        # photos not moved have sigma 0 and shift 0: 0 > 0 is False
-        turns = torch.rad2deg(turn).tolist()
-        shifted = bool((shift * free.pose_sigma[:, 0] > (limit + depth_change) * free.pose_sigma[:, 3]).any())
-    return beyond_limits(focal, k1, turns, shifted)

@@ -1,6 +1,6 @@
 """Levenberg-Marquardt for small robust least-squares problems in torch: the keypoint camera fit's solver.
 
-The joint fit of the Sim(3) with the meta-image's cameras (`keypoints.fit_jointly`: 7 + 6 per photo + 2 per COLMAP
+The joint fit of the Sim(3) with the meta-image's cameras (`camera_fit.fit_jointly`: 7 + 6 per photo + 2 per COLMAP
 camera parameters, 31 for a 3-photo meta-image) is a bundle adjustment with the 3-D points held: smooth, small and
 ill-conditioned (focal length against depth, a common turn of every photo against the Sim(3)). L-BFGS had not
 converged after 1000 iterations there (largest gradient component 0.24), so its end point moved with 1e-11 changes

@@ -32,7 +32,8 @@ from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration import other_minimum
 from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
 from sg_nerfstudio.registration.hypotheses import best_hypothesis
-from sg_nerfstudio.registration.keypoints import Anchoring, CameraFit
+from sg_nerfstudio.registration.camera_fit import CameraFit, fit_cameras
+from sg_nerfstudio.registration.keypoints import Anchoring
 from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos, with_camera_changes
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import TrimmingRule, check_robust_settings
@@ -319,14 +320,14 @@ def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, resul
 def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, grid_size: int) -> CameraFit:
     """The render-free stage before the first render: the keypoint term alone from `start_ns` (meta -> dataparser)
     and, with `settings.refine_focal` or `settings.refine_photo_poses`, then jointly with the photos' focal lengths and
-    / or poses (`Anchoring.fit_cameras`; nothing fitted without them)."""
+    / or poses (`camera_fit.fit_cameras`; nothing fitted without them)."""
     steps = settings.keypoint_prealign_steps
     current = anchor.prealign(start_ns, update_centre(meta, start_ns, settings), grid_size, steps)
     if not (settings.refine_focal or settings.refine_photo_poses or settings.refine_distortion):
         return CameraFit(current)
     pose_prior = settings.photo_pose_prior_scale if settings.refine_photo_poses else None
-    return anchor.fit_cameras(
-        current, update_centre(meta, current, settings), grid_size, settings.camera_fit_iterations, settings.refine_focal, pose_prior,
+    return fit_cameras(
+        anchor, current, update_centre(meta, current, settings), grid_size, settings.camera_fit_iterations, settings.refine_focal, pose_prior,
         settings.refine_distortion, settings.camera_fit == "adjustment",
     )
 

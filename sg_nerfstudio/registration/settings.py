@@ -124,7 +124,7 @@ class RegistrationSettings:
     refine_focal: bool = False
     """After the keypoint pre-alignment, fit one focal-length scale per COLMAP camera of the photos with keypoints
     jointly with the Sim(3), each held by the meta-image SfM's own uncertainty of that focal length at the keypoints'
-    noise (render-free; `Anchoring.fit_cameras`, `Anchoring.intrinsics_priors`); every later stage renders the photos
+    noise (render-free; `camera_fit.fit_cameras`, `camera_fit.intrinsics_priors`); every later stage renders the photos
     of those cameras with it, transform.json records it per photo and the aligned and merged models' cameras carry it.
     It moves focal lengths the SfM determined poorly (3-photo meta-images) and leaves well-determined ones; off = the
     SfM intrinsics as they are (the paper)."""
@@ -146,18 +146,18 @@ class RegistrationSettings:
     (docs/measurements.md "Other splits and looks of the same real photos"); off = the SfM's distortion as it is (the paper)."""
     camera_fit: Literal["priors", "adjustment"] = "priors"
     """How `refine_photo_poses` fits the cameras (with `refine_focal` / `refine_distortion`). `priors`: the keypoints
-    alone, each photo's focal length, k1, rotation and centre held by its own prior (`keypoints.fit_jointly`).
+    alone, each photo's focal length, k1, rotation and centre held by its own prior (`camera_fit.fit_jointly`).
     `adjustment`: one pycolmap bundle adjustment of the meta-image's own SfM observations with the keypoint anchors as
     constant points (registration/anchored_adjustment.py), which moves a photo's focal length, distortion, depth and
     orientation together as far as its own tracks allow; every photo moves, with anchors or not. On the 46 SIFT starts
     of the twelve real-photo benchmark scenes (fast-cpu) mean ΔR 0.129 -> 0.105° and ΔT 0.011 -> 0.010, the worst
     meta-image's ΔT 0.057 -> 0.021 (docs/measurements.md "The camera fit as a bundle adjustment"). Where the anchors
     leave the scale free (one photo's, or photos from one spot), a camera model has more distortion terms than k1, or
-    a rig has several cameras, `priors` runs instead (`Anchoring.fit_cameras`)."""
+    a rig has several cameras, `priors` runs instead (`camera_fit.fit_cameras`)."""
     photo_pose_prior_scale: float = 1.0
     """`refine_photo_poses`' prior on each photo's rotation in units of the SfM's own standard deviation of it."""
     camera_fit_iterations: int = 100
-    """At most this many Levenberg-Marquardt iterations (render-free; `keypoints.fit_jointly`) for the joint fit of
+    """At most this many Levenberg-Marquardt iterations (render-free; `camera_fit.fit_jointly`) for the joint fit of
     `refine_focal` / `refine_photo_poses` / `refine_distortion` (the real-photo meta-images converged in 7-10)."""
     prealigned_steps: Optional[int] = None
     """Steps of the main stage when the keypoint pre-alignment ran (it leaves the start within a fraction of a degree,

@@ -36,7 +36,7 @@ angle, so every probe shifts the image by about one descriptor cell. Evidence:
   uncertain. The anchors hold the other six degrees of freedom, so a shallow rise above it is accepted as a shallow
   minimum is with anchors that hold (real twin pairs: 2.9-3.5% at ±5.5% on fountain3 0005-0008, accurate).
 - `camera_fit_refused` (with keypoint anchors and a camera fit, registration/keypoints.py): why the fit of the photos'
-  focal lengths, k1 and poses to the anchors was not kept (`keypoints.beyond_limits`), None when it was. The anchors then
+  focal lengths, k1 and poses to the anchors was not kept (`camera_fit.beyond_limits`), None when it was. The anchors then
   asked a photo to turn more than 2°, or a focal length to change more than 20%: more than an SfM of a few photos errs
   by, so the meta-image's own cameras disagree with the reference. A single Sim(3) of such a model is in doubt:
   `uncertain`. On this machine's benchmarks every such refusal came from a meta-image whose own SfM was poor (13 of 13:

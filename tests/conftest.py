@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import torch
 
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.scripts.make_scene import main as make_scene_main
@@ -33,7 +32,6 @@ def make_config(data: Path, output: Path, steps: int, teacher: TeacherConfig):
 @pytest.fixture(scope="session")
 def trained(tiny_scene, tmp_path_factory):
     """A 300-step CPU sg-feature-splat of the tiny scene (offline teacher): (trainer, loss history, config)."""
-    torch.manual_seed(0)
     output = tmp_path_factory.mktemp("train")
     config = make_config(tiny_scene / "reference", output, 300, TeacherConfig(name="offline", input_size=128, cache_dir=output / "cache"))
     history = []

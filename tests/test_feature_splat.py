@@ -55,7 +55,6 @@ def test_the_dense_sift_teacher_trains_a_128_channel_field(tiny_scene, tmp_path)
     """`--pipeline.datamanager.teacher.name dense-sift`: the model decodes to kornia's 128-d RootSIFT and fits it."""
     from sg_nerfstudio.splat.training import train
 
-    torch.manual_seed(0)
     config = make_config(tiny_scene / "reference", tmp_path, 60, TeacherConfig(name="dense-sift", input_size=128, cache_dir=tmp_path / "cache"))
     history = []
     trainer = train(config, lambda step, trainer, losses: history.append(float(losses["feature_loss"].detach())))
@@ -99,7 +98,6 @@ def test_densification_can_be_switched_off_or_limited_to_many_views(tiny_scene, 
     of Gaussians through the first refinement step of the test schedule (step 120), where the default changes it."""
     from sg_nerfstudio.splat.training import train
 
-    torch.manual_seed(0)
     config = make_config(tiny_scene / "reference", tmp_path, 125, TeacherConfig(name="offline", input_size=128, cache_dir=tmp_path / "cache"))
     config.pipeline.model.densify, config.pipeline.model.densify_min_views = densify, min_views
     counts = []

@@ -56,7 +56,7 @@ not believed: the camera fit is dropped whole."""
 
 @dataclass
 class CameraFit:
-    """The result of `Anchoring.fit_cameras`: the Sim(3) (numpy, meta -> dataparser) fitted with the cameras, {photo name:
+    """The result of `fit_cameras`: the Sim(3) (numpy, meta -> dataparser) fitted with the cameras, {photo name:
     focal_scale} of every photo of a refined camera, {photo name: [3, 4] cam_from_meta} of every moved photo and
     {COLMAP camera id: k1} of every camera whose radial distortion was refined."""
 
@@ -73,8 +73,8 @@ def fit_cameras(
     anchoring: Anchoring, start: Sim3, centre: np.ndarray, grid_size: int, iterations: int, focal: bool, pose_prior_scale: Optional[float],
     distortion: bool = False, adjustment: bool = False,
 ) -> CameraFit:
-    """The keypoint term minimised over the Sim(3) *and* the meta-image's cameras, from `start` (best already
-    pre-aligned): with `focal`, one focal-length scale per COLMAP camera of the photos with keypoints (one per photo
+    """The keypoint term of `anchoring` minimised over the Sim(3) *and* the meta-image's cameras, from `start` (best
+    already pre-aligned): with `focal`, one focal-length scale per COLMAP camera of the photos with keypoints (one per photo
     where, as for Internet photos, each has its own); with `pose_prior_scale`, each such photo's pose by a small
     rotation and centre shift under a prior of that times its SfM rotation uncertainty (`rotation_priors`,
     `KeypointTerm.pose_sigma`), the keypoints then weighed with the narrower kernel of FIT_KERNEL_FRACTION. `start`

@@ -559,7 +559,8 @@ def test_verdict_rule_follows_its_evidence():
     depths = {"sharpness": shallow, "depth_agreeing": 0.9, "depth_points": 2 * verdict.DEPTH_HOLDS_POINTS}
     held_by_depths = decide(Evidence(**sound | depths))
     assert held_by_depths.label == "registered" and "90% of 100 sparse points lie within 10%" in held_by_depths.reasons[1]
-    assert decide(Evidence(**sound | depths | {"depth_agreeing": 0.9 * verdict.DEPTH_HOLDS_SHARE})).label == "uncertain"
+    too_few = decide(Evidence(**sound | depths | {"depth_agreeing": 0.9 * verdict.DEPTH_HOLDS_SHARE}))
+    assert too_few.label == "uncertain" and "54% of 100 sparse points" in too_few.reasons[0]
     assert decide(Evidence(**sound | depths | {"depth_points": verdict.DEPTH_HOLDS_POINTS - 1})).label == "uncertain"
     assert decide(Evidence(**sound | depths | {"flattest_rise": 2 * verdict.DESCENT_TOLERANCE})).label == "uncertain"
     assert decide(Evidence(**sound | depths | {"agreeing_photos": 4})).label == "uncertain"

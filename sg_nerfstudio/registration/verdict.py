@@ -266,6 +266,11 @@ def agreement_and_sharpness(evidence: Evidence) -> tuple[str, str]:
     return f"{evidence.agreeing_photos} of {evidence.photos} photos agree", f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
 
 
+def depths_phrase(evidence: Evidence) -> str:
+    """How many of the meta-image's sparse points lie on the reference's surface (`Evidence.depths_hold`)."""
+    return f"{100 * evidence.depth_agreeing:.0f}% of {evidence.depth_points} sparse points lie within 10% of the reference's depth"
+
+
 def failure(evidence: Evidence) -> Optional[list[str]]:
     """The reasons the evidence makes a result `failed` (too few photos agree, or a flat objective), or None."""
     agreeing, sharp = agreement_and_sharpness(evidence)
@@ -286,7 +291,7 @@ def decide(evidence: Evidence) -> Verdict:
     if evidence.agreeing_fraction < REGISTERED_AGREEING:
         reasons.append(f"only {agreeing}")
     if evidence.sharpness < REGISTERED_SHARPNESS and not (evidence.anchors_hold or evidence.depths_hold):
-        reasons.append(f"shallow minimum: {sharp}")
+        reasons.append(f"shallow minimum: {sharp}" + (f" ({depths_phrase(evidence)}: too few to hold it)" if evidence.depth_agreeing is not None else ""))
     if evidence.flattest_rise < DESCENT_TOLERANCE:
         reasons.append(f"not converged: a probe is {100 * -evidence.flattest_rise:.1f}% lower")
     contradicting = [
@@ -311,6 +316,6 @@ def decide(evidence: Evidence) -> Verdict:
         if evidence.anchors_hold:
             held = f"anchors of {evidence.keypoint_photos} photos hold within {evidence.keypoint_error_cells:.2f} cells"
         else:
-            held = f"{100 * evidence.depth_agreeing:.0f}% of {evidence.depth_points} sparse points lie within 10% of the reference's depth"
+            held = depths_phrase(evidence)
         return Verdict("registered", [agreeing, f"shallow minimum ({sharp}) but {held}"], evidence)
     return Verdict("registered", [agreeing, sharp], evidence)

@@ -587,7 +587,7 @@ def test_verdict_rule_follows_its_evidence():
     assert decide(Evidence(**sound | held | {"sharpness": 0.5 * verdict.FAILED_SHARPNESS})).label == "failed"
     scale_seen = {"scale_rise": 2 * verdict.REGISTERED_SHARPNESS, "scale_probe": 0.04}
     assert decide(Evidence(**sound | scale_seen)).label == "registered"
-    assert decide(Evidence(**sound | scale_seen | {"scale_rise": shallow})).label == "registered"  # a shallow rise that is not flat
+    assert decide(Evidence(**sound | scale_seen | {"scale_rise": 0.5 * verdict.REGISTERED_SHARPNESS})).label == "registered"
     flat_scale = decide(Evidence(**sound | scale_seen | {"scale_rise": 0.5 * verdict.FAILED_SHARPNESS}))
     assert flat_scale.label == "uncertain" and flat_scale.reasons[0].startswith("scale not fixed")
     # another minimum as deep as the result (one window along a repetitive facade) makes it uncertain; a deeper one too
@@ -860,18 +860,16 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
 
 
 def test_anchors_that_hold_make_a_shallow_minimum_registered_unless_the_photos_disagree(reference, meta, ground_truth):
-    """The verdict with keypoint anchors: exact anchors hold the registration at the truth: registered, and still
-    registered were the dense minimum there shallow (uncertain by sharpness alone, as without the anchors). Anchors
-    made 8° away (consistent with each other, as a wrong but verified match set would be) hold it there just as well,
-    but the photos' dense losses do not agree with that pose: not registered."""
+    """The verdict with keypoint anchors: exact anchors hold the registration at the truth, where the tiny scene's
+    dense objective rises under 5% one cell away (uncertain by sharpness alone): registered. Anchors made 8° away
+    (consistent with each other, as a wrong but verified match set would be) hold it there just as well, but the
+    photos' dense losses do not agree with that pose: not registered."""
     settings = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render",
                                     update_centre="look-at", keypoint_weight=10.0, keypoint_prealign_steps=1000,
                                     prealigned_steps=20, prealigned_lr=0.003)
     right = register(reference, meta, ground_truth, settings, keypoints=projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=3))
-    assert right.verdict.evidence.anchors_hold and right.verdict.label == "registered", right.verdict
-    shallow = replace(right.verdict.evidence, sharpness=0.5 * (verdict.FAILED_SHARPNESS + verdict.REGISTERED_SHARPNESS))
-    assert verdict.decide(shallow).label == "registered"
-    assert verdict.decide(replace(shallow, keypoint_error_cells=None, keypoint_photos=None)).label == "uncertain"
+    assert right.verdict.evidence.sharpness < verdict.REGISTERED_SHARPNESS and right.verdict.evidence.anchors_hold
+    assert right.verdict.label == "registered", right.verdict
     elsewhere = perturbed_start(meta, ground_truth, 11, 8.0, 0.08, 0.0)
     wrong = register(reference, meta, ground_truth, settings, keypoints=projected_keypoints(reference, meta, elsewhere, 40, 0.0, seed=3))
     assert pose_errors(meta.poses, wrong.transform, ground_truth).rotation_deg > 7.0 and wrong.verdict.evidence.anchors_hold

@@ -291,7 +291,10 @@ def decide(evidence: Evidence) -> Verdict:
     if evidence.agreeing_fraction < REGISTERED_AGREEING:
         reasons.append(f"only {agreeing}")
     if evidence.sharpness < REGISTERED_SHARPNESS and not (evidence.anchors_hold or evidence.depths_hold):
-        reasons.append(f"shallow minimum: {sharp}" + (f" ({depths_phrase(evidence)}: too few to hold it)" if evidence.depth_agreeing is not None else ""))
+        shallow = f"shallow minimum: {sharp}"
+        if evidence.depth_agreeing is not None:
+            shallow += f" ({depths_phrase(evidence)}: too few to hold it)"
+        reasons.append(shallow)
     if evidence.flattest_rise < DESCENT_TOLERANCE:
         reasons.append(f"not converged: a probe is {100 * -evidence.flattest_rise:.1f}% lower")
     contradicting = [

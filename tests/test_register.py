@@ -251,7 +251,7 @@ def test_retrimming_less_often_renders_less_and_ends_where_the_paper_rule_does(r
     np.testing.assert_array_equal(lazy.ignored_fraction[paper.ignored_fraction == 1.0], 1.0)
     initial, ends = pose_errors(meta.poses, start, ground_truth), pose_errors(meta.poses, lazy.transform, paper.transform)
     # measured from 3° / 0.055: under a tenth of that on the earlier CI machine, 0.42° / 0.0058 on an AMD EPYC (another draw
-    # of the tiny reference: its training follows the CPU's arithmetic)
+    # of the tiny reference, presumably from the CPU's arithmetic)
     assert ends.rotation_deg < 0.2 * initial.rotation_deg and ends.translation < 0.2 * initial.translation, (initial, ends)
 
 

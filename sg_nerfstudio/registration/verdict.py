@@ -89,7 +89,7 @@ from torch import Tensor
 from sg_nerfstudio.geometry.alignment import camera_centres
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.registration.depth_agreement import DepthAgreement
+from sg_nerfstudio.registration.depth_agreement import AGREEING_LOG_RATIO, DepthAgreement
 from sg_nerfstudio.registration.keypoints import anchors_fix_scale
 from sg_nerfstudio.registration.other_minimum import MARGIN as OTHER_MINIMUM_MARGIN
 from sg_nerfstudio.registration.robust import TrimmingRule
@@ -268,7 +268,8 @@ def agreement_and_sharpness(evidence: Evidence) -> tuple[str, str]:
 
 def depths_phrase(evidence: Evidence) -> str:
     """How many of the meta-image's sparse points lie on the reference's surface (`Evidence.depths_hold`)."""
-    return f"{100 * evidence.depth_agreeing:.0f}% of {evidence.depth_points} sparse points lie within 10% of the reference's depth"
+    within = f"{100 * AGREEING_LOG_RATIO:.0f}%"  # |log depth ratio| under it: about that share of the depth
+    return f"{100 * evidence.depth_agreeing:.0f}% of {evidence.depth_points} sparse points lie within {within} of the reference's depth"
 
 
 def failure(evidence: Evidence) -> Optional[list[str]]:

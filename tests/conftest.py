@@ -2,14 +2,48 @@
 
 from __future__ import annotations
 
+import os
+import platform
 from pathlib import Path
 
-import pytest
+CPU_PINS = {
+    "ATEN_CPU_CAPABILITY": "avx2",  # torch's vectorised kernels (an AVX-512 machine picks its own by default)
+    "ONEDNN_MAX_CPU_ISA": "AVX2",  # oneDNN's convolutions (the teacher's filters, SSIM, the 1x1 decoder)
+    "MKL_CBWR": "COMPATIBLE",  # MKL's BLAS code path
+    "NUMBA_CPU_NAME": "haswell",  # the CPU rasterizer's compiled code: vector width, fused multiply-adds ...
+    "NUMBA_CPU_FEATURES": "",  # ... from haswell's own feature set, not the host's
+}
+"""The code paths every library's CPU dispatch takes in the tests, pinned to AVX2 where the machine has it (set before
+torch and numba load, over any value the shell set). Training the tiny reference amplifies last-bit differences:
+measured on an AMD EPYC (AVX2, 2026-12-06), torch's `default` kernels, oneDNN held to SSE4.1 or numba's `generic`
+CPU each trained another draw (other Gaussian counts and losses), as a machine whose libraries pick AVX-512 may; the
+pins below reproduce that machine's own draw bit for bit, the one the tolerances were checked on. numpy's and
+OpenCV's dispatch and glibc's libm variants were tried the same way and changed nothing."""
 
-from sg_nerfstudio.features import TeacherConfig
-from sg_nerfstudio.render.threads import set_threads
-from sg_nerfstudio.scripts.make_scene import main as make_scene_main
-from sg_nerfstudio.splat.training import cpu_config, save, train
+
+def cpu_supports_pins() -> bool:
+    """x86-64 Linux with AVX2 and FMA (read from /proc/cpuinfo: torch and numba must not load before the pins)."""
+    if platform.machine() not in ("x86_64", "AMD64"):
+        return False
+    try:
+        flags = next(line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("flags")).split()
+    except (OSError, StopIteration):
+        return False
+    return {"avx2", "fma"} <= set(flags)
+
+
+PINNED = cpu_supports_pins()
+if PINNED:
+    for name, value in CPU_PINS.items():
+        os.environ[name] = value
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+from sg_nerfstudio.features import TeacherConfig  # noqa: E402
+from sg_nerfstudio.render.threads import set_threads  # noqa: E402
+from sg_nerfstudio.scripts.make_scene import main as make_scene_main  # noqa: E402
+from sg_nerfstudio.splat.training import cpu_config, save, train  # noqa: E402
 
 TEST_THREADS = 2
 """Every test trains and renders on this many threads (torch's and numba's pools), whatever the machine's cores: the
@@ -21,6 +55,15 @@ numba's pool cannot grow past NUMBA_NUM_THREADS (the cores, by default): a one-c
 
 def pytest_configure(config):
     set_threads(TEST_THREADS)  # before any fixture: the session's tiny reference trains on them
+
+
+def pytest_report_header(config):
+    import numba
+
+    paths = f"torch {torch.backends.cpu.get_cpu_capability()}, numba {numba.config.CPU_NAME or 'host'}"
+    if not PINNED:
+        return f"CPU code paths not pinned (no AVX2 and FMA here): {paths}; the tiny reference may be another draw"
+    return f"CPU code paths pinned (tests/conftest.py CPU_PINS): {paths}; {TEST_THREADS} threads"
 
 
 @pytest.fixture(autouse=True)

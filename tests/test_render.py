@@ -281,6 +281,18 @@ def test_threads_setting_sizes_torch_and_numba_pools():
         numba.set_num_threads(before[1])
 
 
+def test_the_suite_runs_on_the_pinned_cpu_code_paths():
+    """tests/conftest.py pins each library's CPU dispatch before torch and numba load (its CPU_PINS): an import moved
+    above the pins would leave them unread, and the tiny reference another draw on another machine."""
+    import numba
+    from conftest import CPU_PINS, PINNED
+
+    if not PINNED:
+        pytest.skip("this machine has no AVX2 and FMA: the suite runs on its own code paths")
+    assert torch.backends.cpu.get_cpu_capability() == CPU_PINS["ATEN_CPU_CAPABILITY"].upper()
+    assert numba.config.CPU_NAME == CPU_PINS["NUMBA_CPU_NAME"] and numba.config.CPU_FEATURES == CPU_PINS["NUMBA_CPU_FEATURES"]
+
+
 @pytest.mark.parametrize(
     "given, expected",
     [

@@ -21,15 +21,19 @@ pins below reproduce that machine's own draw bit for bit, the one the tolerances
 OpenCV's dispatch and glibc's libm variants were tried the same way and changed nothing."""
 
 
+HASWELL_FLAGS = {"avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "abm", "movbe", "popcnt", "sse4_2"}
+
+
 def cpu_supports_pins() -> bool:
-    """x86-64 Linux with AVX2 and FMA (read from /proc/cpuinfo: torch and numba must not load before the pins)."""
+    """x86-64 Linux with haswell's instructions that compiled code may use (read from /proc/cpuinfo: torch and numba
+    must not load before the pins): numba's code for haswell would stop at the first one missing."""
     if platform.machine() not in ("x86_64", "AMD64"):
         return False
     try:
         flags = next(line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("flags")).split()
     except (OSError, StopIteration):
         return False
-    return {"avx2", "fma"} <= set(flags)
+    return HASWELL_FLAGS <= set(flags)
 
 
 PINNED = cpu_supports_pins()
@@ -62,7 +66,7 @@ def pytest_report_header(config):
 
     paths = f"torch {torch.backends.cpu.get_cpu_capability()}, numba {numba.config.CPU_NAME or 'host'}"
     if not PINNED:
-        return f"CPU code paths not pinned (no AVX2 and FMA here): {paths}; the tiny reference may be another draw"
+        return f"CPU code paths not pinned (this CPU lacks some of HASWELL_FLAGS): {paths}; the tiny reference may be another draw"
     return f"CPU code paths pinned (tests/conftest.py CPU_PINS): {paths}; {TEST_THREADS} threads"
 
 

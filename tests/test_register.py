@@ -393,7 +393,7 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 
 @pytest.mark.parametrize("case", [
-    "not_feature_splat", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
+    "not_feature_splat", "config_is_the_run_directory", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
     "meta_is_a_file", "nan_camera", "nan_point", "output_is_a_file", "nan_lr_flag", "negative_steps_preset", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
 def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
@@ -404,6 +404,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     gt = meta_dir / "gt_transform.json"
     expected = {
         "not_feature_splat": "expected an sg-feature-splat model",
+        "config_is_the_run_directory": f"{reference_config.parent} is a directory; expected the config.yml of a trained sg-feature-splat (this one has {reference_config})",
         "missing_model": "No COLMAP model",
         "corrupt_model": "could not be read",
         "missing_photo": "missing from",
@@ -427,6 +428,8 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         other = copy.deepcopy(method_configs["splatfacto"])
         config = tmp_path / "config.yml"
         config.write_text(yaml.dump(other))
+    elif case == "config_is_the_run_directory":
+        config = reference_config.parent
     elif case == "missing_model":
         shutil.rmtree(meta_dir / "sparse")
     elif case == "corrupt_model":

@@ -47,6 +47,10 @@ class TrainedRun:
 def read_trainer_config(config_path: Path):
     """The TrainerConfig of an sg-feature-splat model at `config_path` (ReferenceModelError otherwise)."""
     config_path = Path(config_path)
+    if config_path.is_dir():
+        inside = config_path / "config.yml"
+        hint = f" (this one has {inside})" if inside.is_file() else ""
+        raise ReferenceModelError(f"Config {config_path} is a directory; expected the config.yml of a trained sg-feature-splat{hint}.")
     if not config_path.is_file():
         raise ReferenceModelError(f"Config {config_path} does not exist; expected the config.yml of a trained sg-feature-splat.")
     try:

@@ -7,7 +7,7 @@ import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator, Optional
 
 from sg_nerfstudio.errors import InputError
 
@@ -28,10 +28,28 @@ def check_output_path(path: Path) -> None:
             raise OutputPathError(f"Output directory {path} {where}; expected a directory there, or a path that does not exist yet.")
 
 
-def check_new_output_directory(path: Path, overwrite: bool) -> None:
-    """`check_output_path`, and OutputPathError when `path` exists and `overwrite` is not given (the commands that create
-    their output directory whole)."""
+def check_apart_from_inputs(path: Path, inputs: Iterable[Optional[Path]]) -> None:
+    """OutputPathError when `path`, a directory a command creates whole (and with --overwrite replaces, deleting what
+    it held), is one of the command's `inputs` (files or directories; None entries are skipped) or a folder above
+    one. Paths are compared resolved, so `photos/..` and a symbolic link name their target."""
+    output = Path(path).resolve()
+    for given in inputs:
+        if given is None:
+            continue
+        resolved = Path(given).resolve()
+        if resolved == output or output in resolved.parents:
+            relation = "is" if resolved == output else "holds"
+            raise OutputPathError(
+                f"Output directory {path} {relation} the input {given}; expected a directory apart from the inputs "
+                "(writing the output there replaces what it holds)."
+            )
+
+
+def check_new_output_directory(path: Path, overwrite: bool, inputs: Iterable[Optional[Path]] = ()) -> None:
+    """`check_output_path`, `check_apart_from_inputs`, and OutputPathError when `path` exists and `overwrite` is not
+    given (the commands that create their output directory whole)."""
     check_output_path(path)
+    check_apart_from_inputs(path, inputs)
     if Path(path).exists() and not overwrite:
         raise OutputPathError(f"Output directory {path} already exists; pass --overwrite to replace it.")
 

@@ -51,3 +51,19 @@ def test_an_output_directory_where_a_file_is_is_one_sentence_and_the_file_stays(
         with atomic_directory(target, overwrite=True):
             pass
     assert user_file.read_text() == "the user's notes" and sorted(p.name for p in tmp_path.iterdir()) == ["results"]
+
+
+def test_an_output_apart_from_the_inputs_is_checked_on_resolved_paths(tmp_path):
+    """An output may lie inside an input folder or beside it; it may not be an input or a folder above one, however
+    the path is spelt (`..`, a symbolic link)."""
+    from sg_nerfstudio.atomic import OutputPathError, check_apart_from_inputs
+
+    photos = tmp_path / "data" / "photos"
+    photos.mkdir(parents=True)
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "data")
+    check_apart_from_inputs(photos / "meta", [photos])
+    check_apart_from_inputs(tmp_path / "data" / "metas", [photos, None])
+    for output, relation in ((photos / "sub" / "..", "is"), (link, "holds"), (tmp_path, "holds")):
+        with pytest.raises(OutputPathError, match=f"Output directory {output} {relation} the input {photos}"):
+            check_apart_from_inputs(output, [None, photos])

@@ -123,6 +123,25 @@ def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     assert not output.exists() and not list(tmp_path.glob(".metas*"))
 
 
+@pytest.mark.parametrize("layout", ["the-folder", "its-parent"])
+def test_an_output_that_would_replace_the_photos_is_refused_and_they_stay(layout, tmp_path, capfd):
+    """--overwrite replaces the output directory whole; where that directory is the photo folder or holds it, the
+    command stops before anything is read or written."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for seed in range(3):
+        noise_photo(folder / f"noise{seed}.png", seed)
+    (folder / "notes.txt").write_text("the user's notes")
+    before = {path: path.read_bytes() for path in tmp_path.rglob("*") if path.is_file()}
+    output = folder if layout == "the-folder" else tmp_path
+    assert meta_images_main([str(folder), "--output", str(output), "--overwrite", "--threads", "1"]) == 1
+    err = capfd.readouterr().err
+    relation = "is" if layout == "the-folder" else "holds"
+    assert f"Output directory {output} {relation} the input {folder}; expected a directory apart from the inputs" in err
+    assert err.strip().count("\n") == 0 and "Traceback" not in err
+    assert {path: path.read_bytes() for path in tmp_path.rglob("*") if path.is_file()} == before
+
+
 def random_poses(rng, count: int, collinear: bool) -> np.ndarray:
     poses = []
     for index in range(count):

@@ -60,7 +60,7 @@ def build_meta_images(
     """Run SfM on the photo folder `photos` and write one meta-image per model into `output` (see module doc)."""
     started = time.perf_counter()
     sources = list_photos(photos)
-    check_new_output_directory(output, overwrite)
+    check_new_output_directory(output, overwrite, inputs=[photos])
     with atomic_directory(output, overwrite=overwrite) as staging:
         working = staging / "sfm" / "images"
         prepared = prepare_photos(sources, working, max_size, on_photo)

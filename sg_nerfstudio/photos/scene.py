@@ -132,7 +132,7 @@ def build_real_scene(
     if settings.reference_every < 2:
         raise RealSceneError(f"reference_every must be at least 2 (1 would leave no photo for meta-images), got {settings.reference_every}.")
     sources = list_photos(photos)
-    check_new_output_directory(output, overwrite)
+    check_new_output_directory(output, overwrite, inputs=[photos, cameras])
     with atomic_directory(output, overwrite=overwrite) as root:
         work = root / "work"
         stage(f"reading {len(sources)} photos")

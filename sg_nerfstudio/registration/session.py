@@ -28,7 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
-from sg_nerfstudio.atomic import check_output_path
+from sg_nerfstudio.atomic import check_apart_from_inputs, check_output_path
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image, radial_k1_index
 from sg_nerfstudio.geometry.sim3 import Sim3
@@ -147,7 +147,10 @@ def check_targets(job: RegistrationJob, names: list[str]) -> None:
     if len(set(names)) != len(names):
         raise ArgumentError(f"Meta-image directories must have distinct names (results go to <output-dir>/<name>), got {names}.")
     targets = [job.output_dir / name for name in names] + ([job.output_dir / MERGED] if len(names) > 1 else [])
+    init_files = [Path(value) for value in job.init if value not in METHODS and value != "identity"]
+    inputs = [*job.meta_image, *job.gt, *init_files, job.load_config, job.reference_colmap, job.reference_images]
     for target in targets:
+        check_apart_from_inputs(target, inputs)
         if target.exists() and not job.overwrite:
             raise ArgumentError(f"Result directory {target} exists; pass --overwrite to replace it.")
     if MERGED in names and len(names) > 1:

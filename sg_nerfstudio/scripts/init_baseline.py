@@ -68,7 +68,8 @@ class InitBaselineArgs:
 
 
 def run(args: InitBaselineArgs, console: Console) -> list[dict]:
-    check_new_output_directory(args.output_dir, args.overwrite)
+    inputs = [*args.meta_image, *args.gt, args.load_config, args.reference_colmap, args.reference_images]
+    check_new_output_directory(args.output_dir, args.overwrite, inputs)
     source = resolve_reference_source(args.load_config, args.reference_colmap, args.reference_images)
     metas = [load_meta_image(path) for path in args.meta_image]
     names = [meta.name for meta in metas]

@@ -37,7 +37,8 @@ class MetaImagesArgs:
     photos: Annotated[Path, tyro.conf.Positional]
     """Folder of JPEG / PNG photos (read only)."""
     output: Path
-    """Directory to create: <output>/meta-NN/ per model, meta_images.json; refused if it exists unless --overwrite."""
+    """Directory to create: <output>/meta-NN/ per model, meta_images.json; refused if it exists unless --overwrite, and
+    always where it is the photo folder or a folder above it (--overwrite would replace the photos)."""
     max_size: int = 1024
     """Working resolution: long side of the photos SfM (and later registration) sees, in pixels."""
     exhaustive_limit: int = 60

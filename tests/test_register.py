@@ -503,6 +503,29 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # inputs untouched
 
 
+def test_a_photo_with_an_exif_orientation_is_read_on_its_stored_pixel_grid(tiny_scene, tmp_path):
+    """COLMAP's camera and keypoints describe a photo's stored pixels (pycolmap reads them so); an EXIF orientation tag,
+    as on portrait phone photos, must not turn the image the registration compares with its renders."""
+    from PIL import Image
+
+    meta_dir = copy_meta(tiny_scene, tmp_path)
+    model = pycolmap.Reconstruction(str(meta_dir / "sparse" / "0"))
+    next(image for image in model.images.values() if image.name == "front_001.png").name = "front_001.jpg"
+    model.write_binary(str(meta_dir / "sparse" / "0"))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # orientation: turn 90 degrees clockwise to view
+    Image.open(meta_dir / "images" / "front_001.png").convert("RGB").save(meta_dir / "images" / "front_001.jpg", exif=exif.tobytes(), quality=95)
+    (meta_dir / "images" / "front_001.png").unlink()
+    stored = np.asarray(Image.open(meta_dir / "images" / "front_001.jpg").convert("RGB"))  # PIL does not apply the tag
+    assert pycolmap.Bitmap.read(str(meta_dir / "images" / "front_001.jpg"), True).width == stored.shape[1]
+
+    photo = next(p for p in load_meta_image(meta_dir).photos if p.name == "front_001.jpg")
+    assert stored.shape[:2] == (photo.camera.height, photo.camera.width) and stored.shape[0] != stored.shape[1]
+    loaded = photo.load_undistorted()
+    assert loaded.shape == stored.shape
+    assert np.abs(loaded.astype(float) - stored).mean() < 2.0  # undistorted by its small k1 (0.5 here), not turned
+
+
 def moved_meta_image(source: Path, target: Path, similarity: Sim3) -> Path:
     """A copy of a meta-image expressed in another frame (x_new = similarity x_old), with its ground truth."""
     shutil.copytree(source, target)

@@ -96,7 +96,8 @@ class Photo:
 
     def load_undistorted(self) -> Array:
         """[H, W, 3] uint8 RGB, undistorted to `pinhole_intrinsics()`; raises MetaImageError if unreadable."""
-        bgr = cv2.imread(str(self.path), cv2.IMREAD_COLOR)
+        # the stored pixel grid, as COLMAP saw it: OpenCV would otherwise turn a photo by its EXIF orientation tag
+        bgr = cv2.imread(str(self.path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if bgr is None:
             raise MetaImageError(f"Photo {self.path} could not be read as an image.")
         height, width = bgr.shape[:2]  # equal to the camera's: checked by load_meta_image

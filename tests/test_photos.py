@@ -86,11 +86,17 @@ def test_prepare_photos_applies_exif_grey_and_cap(tmp_path):
     exif[0x0112] = 6  # orientation: rotate 90 degrees clockwise to view
     wide.save(source / "rotated.jpg", exif=exif)
     Image.fromarray(np.zeros((50, 80), np.uint8)).save(source / "grey.png")
+    ramp = np.tile(np.linspace(0, 65535, 80).astype(np.uint16)[None, :], (50, 1))
+    Image.fromarray(ramp).save(source / "grey16.png")  # a 16-bit grey PNG (scans, HDR merges)
+    assert Image.open(source / "grey16.png").mode in ("I;16", "I")
     prepared = prepare_photos(sorted(source.iterdir()), tmp_path / "out", max_size=100)
     by_name = {p.name: p for p in prepared}
     assert by_name["rotated.jpg"].size == (50, 100)  # upright (portrait) and capped at 100
     assert by_name["grey.png"].size == (80, 50)  # small photos are not enlarged
     assert Image.open(tmp_path / "out" / "grey.png").mode == "RGB"
+    grey16 = np.asarray(Image.open(tmp_path / "out" / "grey16.png"))
+    assert grey16.shape == (50, 80, 3)  # its tones kept at 8 bits, not clipped to white
+    np.testing.assert_array_equal(grey16[0, :, 1], np.rint(ramp[0] / 257.0).astype(np.uint8))
 
 
 @pytest.mark.parametrize("case", ["missing", "a-file", "empty", "two", "truncated", "no-model", "camera-model"])

@@ -1,7 +1,7 @@
 """A folder of photos read the way COLMAP should see them: EXIF orientation applied, RGB, a capped size.
 
 Internet photos come as JPEG or PNG of any size, portrait or landscape (often only through the EXIF
-orientation tag), in colour or grey. `prepare_photos` writes one working copy per photo into a directory
+orientation tag), in colour or grey (8 or 16 bits). `prepare_photos` writes one working copy per photo into a directory
 (the images SfM, training and registration then read, so the COLMAP cameras match their pixels) and fails
 with one sentence on the first photo that cannot be decoded (a truncated JPEG, a file that is no image).
 PIL does the decoding and the EXIF handling (`ImageOps.exif_transpose`).
@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
 from PIL import Image, ImageOps
 
 from sg_nerfstudio.errors import InputError, not_a_directory
@@ -61,12 +62,25 @@ def load_photo(path: Path) -> Image.Image:
         with Image.open(path) as handle:
             handle.load()
             upright = ImageOps.exif_transpose(handle)
-            return upright.convert("RGB")
+            return as_8_bit(upright).convert("RGB")
     except Exception as error:
         raise PhotoFolderError(
             f"Photo {path} could not be decoded ({type(error).__name__}: {error}); expected a complete JPEG or PNG "
             "(remove or replace the file)."
         ) from None
+
+
+SIXTEEN_BIT_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I")
+"""PIL's modes of a 16-bit grey PNG (Pillow opens one as "I;16", older versions as "I")."""
+
+
+def as_8_bit(image: Image.Image) -> Image.Image:
+    """A 16-bit grey photo as 8-bit grey ("L", values / 257); other images as they are. PIL's own convert("RGB")
+    clips 16-bit values above 255, which makes such a photo white."""
+    if image.mode not in SIXTEEN_BIT_MODES:
+        return image
+    values = np.asarray(image, dtype=np.float64) / 257.0
+    return Image.fromarray(np.clip(np.rint(values), 0, 255).astype(np.uint8), mode="L")
 
 
 def capped_size(size: tuple[int, int], max_size: Optional[int]) -> tuple[int, int]:

@@ -236,11 +236,12 @@ def test_stop_frees_the_port_and_leaves_no_thread(reference_config, registration
         again.bind(("127.0.0.1", args.port))
 
 
-@pytest.mark.parametrize("case", ["no_transform_json", "not_feature_splat", "gt_count", "moved_meta_image"])
+@pytest.mark.parametrize("case", ["no_transform_json", "missing_registration", "not_feature_splat", "gt_count", "moved_meta_image"])
 def test_bad_inputs_fail_with_one_sentence(case, reference_config, registrations, gt_path, tmp_path, capsys):
     config, registration, extra = reference_config, registrations / "front", []
     expected = {
         "no_transform_json": "has no transform.json",
+        "missing_registration": f"Registration directory {tmp_path / 'gone'} does not exist; expected <output-dir>/<meta-image>/",
         "not_feature_splat": "expected an sg-feature-splat model",
         "gt_count": "--gt was given 2 times for 1 meta-images",
         "moved_meta_image": "pass --meta-image",
@@ -248,6 +249,8 @@ def test_bad_inputs_fail_with_one_sentence(case, reference_config, registrations
     if case == "no_transform_json":
         registration = tmp_path / "front"
         registration.mkdir()
+    elif case == "missing_registration":
+        registration = tmp_path / "gone"
     elif case == "not_feature_splat":
         from nerfstudio.configs.method_configs import method_configs
 

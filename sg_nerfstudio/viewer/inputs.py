@@ -15,7 +15,7 @@ from typing import Optional
 
 from rich.console import Console
 
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, not_a_directory
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
 
@@ -50,7 +50,11 @@ def find_registration_dirs(paths: tuple[Path, ...]) -> list[Path]:
         if (path / "transform.json").is_file():
             found.append(path)
             continue
-        children = sorted(p for p in path.iterdir() if not p.name.startswith(".") and (p / "transform.json").is_file()) if path.is_dir() else []
+        if not path.is_dir():
+            raise RegistrationViewError(
+                f"Registration directory {path} {not_a_directory(path)}; expected <output-dir>/<meta-image>/ as written by ns-register-meta."
+            )
+        children = sorted(p for p in path.iterdir() if not p.name.startswith(".") and (p / "transform.json").is_file())
         if not children:
             raise RegistrationViewError(
                 f"Registration directory {path} has no transform.json (nor do its sub-directories); expected "

@@ -386,6 +386,15 @@ def test_summary_table_is_readable_at_80_columns():
         assert cell in text, cell
 
 
+def test_comparison_files_of_photos_in_sub_folders_do_not_overwrite_each_other(tmp_path):
+    from sg_nerfstudio.registration.outputs import comparison_path
+
+    names = ["cam1/0001.jpg", "cam2/0001.jpg", "0001.jpg", "cam1/deeper/0001.png"]
+    paths = [comparison_path(tmp_path, name) for name in names]
+    assert len(set(paths)) == len(names) and all(path.parent == tmp_path for path in paths)
+    assert paths[0].name == "cam1__0001_before_after.png" and paths[2].name == "0001_before_after.png"
+
+
 def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
     target = tmp_path / "front"
     shutil.copytree(tiny_scene / "meta" / "front", target)

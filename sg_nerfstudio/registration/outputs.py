@@ -189,8 +189,14 @@ def _write_comparisons(directory: Path, reference: ReferenceModel, meta: MetaIma
             panels.append(np.concatenate([_title_strip(title, width), panel], axis=0))
         separator = np.full((panels[0].shape[0], 6, 3), 255, np.uint8)
         combined = np.concatenate([panels[0], separator, panels[1]], axis=1)
-        name = Path(photo.name).stem
-        cv2.imwrite(str(directory / f"{name}_before_after.png"), cv2.cvtColor(combined, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(comparison_path(directory, photo.name)), cv2.cvtColor(combined, cv2.COLOR_RGB2BGR))
+
+
+def comparison_path(directory: Path, photo_name: str) -> Path:
+    """Where the comparison of the photo named `photo_name` (its COLMAP image name) goes: one flat file per photo, its
+    folders joined by "__" so that photos of different sub-folders with one file name ("cam1/0001.jpg",
+    "cam2/0001.jpg") do not overwrite each other."""
+    return directory / f"{'__'.join(Path(photo_name).with_suffix('').parts)}_before_after.png"
 
 
 LABEL_FONT = cv2.FONT_HERSHEY_SIMPLEX

@@ -395,6 +395,20 @@ def test_comparison_files_of_photos_in_sub_folders_do_not_overwrite_each_other(t
     assert paths[0].name == "cam1__0001_before_after.png" and paths[2].name == "0001_before_after.png"
 
 
+def test_the_other_models_of_a_colmap_project_are_named(tiny_scene, tmp_path):
+    """A COLMAP project whose mapper wrote several models (sparse/0, sparse/1): sparse/0 is registered and the others
+    are named for the note ns-register-meta prints."""
+    from sg_nerfstudio.geometry.meta_image import sibling_models
+
+    meta_dir = shutil.copytree(tiny_scene / "meta" / "front", tmp_path / "project")
+    assert sibling_models(meta_dir / "sparse" / "0") == []
+    shutil.copytree(meta_dir / "sparse" / "0", meta_dir / "sparse" / "1")
+    (meta_dir / "sparse" / "2").mkdir()  # no model in it
+    meta = load_meta_image(meta_dir)
+    assert meta.model_path == meta_dir / "sparse" / "0"
+    assert sibling_models(meta.model_path) == [meta_dir / "sparse" / "1"]
+
+
 def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
     target = tmp_path / "front"
     shutil.copytree(tiny_scene / "meta" / "front", target)

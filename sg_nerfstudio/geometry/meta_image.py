@@ -289,6 +289,15 @@ def find_model(directory: Path) -> Path:
     )
 
 
+def sibling_models(model_path: Path) -> list[Path]:
+    """The other models beside `model_path` where it is `sparse/<n>` (COLMAP's mapper writes one per part of the photo
+    collection it could connect: sparse/0, sparse/1, ...), sorted by name; [] otherwise."""
+    model_path = Path(model_path)
+    if model_path.parent.name != "sparse":
+        return []
+    return sorted(p for p in model_path.parent.iterdir() if p.is_dir() and p != model_path and holds_colmap_model(p))
+
+
 def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
     """Read and validate a meta-image; every problem is one MetaImageError sentence."""
     directory = Path(directory)

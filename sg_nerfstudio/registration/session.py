@@ -30,7 +30,7 @@ from rich.text import Text
 
 from sg_nerfstudio.atomic import check_apart_from_inputs, check_output_path
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image, radial_k1_index
+from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image, radial_k1_index, sibling_models
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
@@ -174,6 +174,14 @@ def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     for meta in metas:
         if meta.unlisted:
             console.print(f"[yellow]{meta.name}: {len(meta.unlisted)} files in images/ are not in the COLMAP model and are ignored: {', '.join(meta.unlisted[:5])}[/yellow]")
+        others = sibling_models(meta.model_path)
+        if others:
+            console.print(
+                f"[yellow]{meta.name}: registering {meta.model_path} only; {meta.model_path.parent} also holds "
+                f"model{'s' if len(others) > 1 else ''} {', '.join(p.name for p in others)} (give each its own directory, images/ + sparse/0, to register it; "
+                "sg-meta-images writes that layout).[/yellow]",
+                soft_wrap=True,
+            )
 
     reference_part = read_reference_part(job) if job.merge_reference and len(metas) > 1 else None
     initialiser = None

@@ -284,6 +284,8 @@ def test_real_scene_bad_inputs(photos, tmp_path, capsys):
     cameras.mkdir()
     assert make_scene_main(["--from-photos", str(photos), "--cameras", str(cameras), "--output", str(output)]) == 1
     assert "has no" in capsys.readouterr().err and not output.exists()
+    assert make_scene_main(["--from-photos", str(photos), "--cameras", str(tmp_path / "gone"), "--output", str(output)]) == 1
+    assert f"Cameras {tmp_path / 'gone'} does not exist; expected a COLMAP model directory or a folder of" in capsys.readouterr().err
     with pytest.raises(SfmSettingsError, match="--scene.meta-camera-model 'opencv' is not a COLMAP camera model"):
         build_real_scene(photos, output, RealSceneSettings(meta_camera_model="opencv"))
     settings = RealSceneSettings(reference_size=320, photo_size=320, min_reference_points=10**6)

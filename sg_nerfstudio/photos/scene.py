@@ -48,7 +48,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, not_a_directory
 from sg_nerfstudio.geometry.alignment import CameraAlignment, align_cameras, camera_centres, camera_residuals
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.geometry.triangulation import track_observations, triangulate_track
@@ -131,6 +131,11 @@ def build_real_scene(
     check_camera_model(settings.meta_camera_model, "--scene.meta-camera-model")
     if settings.reference_every < 2:
         raise RealSceneError(f"reference_every must be at least 2 (1 would leave no photo for meta-images), got {settings.reference_every}.")
+    if cameras is not None and not Path(cameras).is_dir():
+        raise RealSceneError(
+            f"Cameras {cameras} {not_a_directory(cameras)}; expected a COLMAP model directory or a folder of "
+            "<photo name>.camera files (Strecha format)."
+        )
     sources = list_photos(photos)
     check_new_output_directory(output, overwrite, inputs=[photos, cameras])
     with atomic_directory(output, overwrite=overwrite) as root:

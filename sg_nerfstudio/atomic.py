@@ -18,14 +18,33 @@ class OutputPathError(InputError):
 
 def check_output_path(path: Path) -> None:
     """OutputPathError when `path`, a directory to create or fill, or a folder above it exists as something other than
-    a directory (a file): creating it would fail with a traceback, and replacing it would delete the user's file."""
+    a directory (a file): creating it would fail with a traceback, and replacing it would delete the user's file; or
+    when the nearest folder of it that exists takes no new entry (`check_writable`)."""
     path = Path(path)
     for candidate in (path, *path.parents):
         if candidate.exists():
             if candidate.is_dir():
+                check_writable(path, candidate)
                 return
             where = "is a file" if candidate == path else f"cannot be created: {candidate} is a file"
             raise OutputPathError(f"Output directory {path} {where}; expected a directory there, or a path that does not exist yet.")
+
+
+def check_writable(path: Path, existing: Path) -> None:
+    """OutputPathError when `existing`, the nearest existing folder of the output directory `path`, takes no new entry
+    (its permissions, a read-only file system, a system folder): found before the work, not when its results are
+    written. Probed by making and removing an empty directory there, since `os.access` does not see every refusal
+    (a root user's, /proc's)."""
+    try:
+        probe = tempfile.mkdtemp(prefix=".sg-write-probe-", dir=existing)
+    except OSError as error:
+        raise OutputPathError(unwritable(path, existing, error)) from None
+    os.rmdir(probe)
+
+
+def unwritable(path: Path, folder: Path, error: OSError) -> str:
+    """The sentence for an output directory that cannot be made in `folder`."""
+    return f"Output directory {path} cannot be created in {folder} ({error.strerror or error}); expected a folder this user may write to."
 
 
 def check_apart_from_inputs(path: Path, inputs: Iterable[Optional[Path]]) -> None:
@@ -60,15 +79,18 @@ def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
     removed and `target` is left as it was.
 
     Raises:
-        OutputPathError: `target` or a folder above it is a file.
+        OutputPathError: `target` or a folder above it is a file, or `target` cannot be made there.
         FileExistsError: `target` exists and `overwrite` is False (checked before and after the work).
     """
     target = Path(target)
     check_output_path(target)
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} already exists")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    except OSError as error:  # the location changed since `check_output_path`, or refuses only deeper down
+        raise OutputPathError(unwritable(target, target.parent, error)) from None
     try:
         yield staging
         if target.exists():

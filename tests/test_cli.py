@@ -67,3 +67,25 @@ def test_an_output_apart_from_the_inputs_is_checked_on_resolved_paths(tmp_path):
     for output, relation in ((photos / "sub" / "..", "is"), (link, "holds"), (tmp_path, "holds")):
         with pytest.raises(OutputPathError, match=f"Output directory {output} {relation} the input {photos}"):
             check_apart_from_inputs(output, [None, photos])
+
+
+@pytest.mark.parametrize("where", ["check", "atomic"])
+def test_an_output_location_that_takes_no_new_entry_is_one_sentence(where, tmp_path, monkeypatch):
+    """A folder the user may not write to (permissions, a read-only file system) is found when the output is checked,
+    before any work, and again where the output is made; nothing is left behind."""
+    from sg_nerfstudio import atomic
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    target = tmp_path / "results" / "scene"
+    monkeypatch.setattr(atomic.tempfile, "mkdtemp", refuse)
+    expected = f"Output directory {target} cannot be created in {tmp_path if where == 'check' else target.parent} (Permission denied); expected a folder"
+    with pytest.raises(atomic.OutputPathError, match=expected.replace("(", r"\(").replace(")", r"\)")):
+        if where == "check":
+            atomic.check_output_path(target)
+        else:
+            monkeypatch.setattr(atomic, "check_output_path", lambda path: None)
+            with atomic.atomic_directory(target):
+                pass
+    assert not target.exists()

@@ -417,7 +417,7 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 @pytest.mark.parametrize("case", [
     "not_feature_splat", "config_is_the_run_directory", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
-    "meta_is_a_file", "output_holds_the_meta_image", "nan_camera", "nan_point", "output_is_a_file", "nan_lr_flag", "negative_steps_preset", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
+    "meta_is_a_file", "output_holds_the_meta_image", "output_cannot_be_created", "nan_camera", "nan_point", "output_is_a_file", "nan_lr_flag", "negative_steps_preset", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
 def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
     meta_dir = copy_meta(tiny_scene, tmp_path)
@@ -435,6 +435,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "wrong_size": "pixels but its COLMAP camera says",
         "truncated_jpeg": "front_001.jpg could not be read as an image (image file is truncated",
         "meta_is_a_file": "front is a file; expected a directory holding images/",
+        "output_cannot_be_created": "Output directory /proc/sg-nerfstudio-test/out cannot be created in /proc",
         "output_holds_the_meta_image": f"Output directory {meta_dir} is the input {meta_dir}; expected a directory apart from the inputs",
         "nan_camera": "has camera parameters [nan,",
         "nan_point": "observes 3D points that are not finite",
@@ -511,6 +512,8 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     out = tmp_path / "out"
     if case == "output_holds_the_meta_image":  # results go to <output-dir>/front: the meta-image itself
         out, extra = meta_dir.parent, ["--overwrite"]
+    elif case == "output_cannot_be_created":  # Linux's /proc takes no new entry, even from root
+        out = Path("/proc/sg-nerfstudio-test/out")
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     code, err = run_cli([
         "--load-config", str(config), "--meta-image", str(meta_dir), "--output-dir", str(out), "--init", init,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import tempfile
@@ -98,6 +99,11 @@ def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
                 raise FileExistsError(f"{target} already exists")
             shutil.rmtree(target)
         os.replace(staging, target)
+    except OSError as error:
+        shutil.rmtree(staging, ignore_errors=True)
+        if error.errno in (errno.ENOSPC, errno.EDQUOT):  # the disk, not an input: say so, not a traceback
+            raise OutputPathError(f"Output directory {target} could not be written ({error.strerror}); nothing of it was kept. Expected room for it on that disk.") from None
+        raise
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -89,3 +89,16 @@ def test_an_output_location_that_takes_no_new_entry_is_one_sentence(where, tmp_p
             with atomic.atomic_directory(target):
                 pass
     assert not target.exists()
+
+
+def test_a_full_disk_while_writing_is_one_sentence_and_leaves_nothing(tmp_path):
+    import errno
+
+    from sg_nerfstudio.atomic import OutputPathError, atomic_directory
+
+    target = tmp_path / "scene"
+    with pytest.raises(OutputPathError, match=f"Output directory {target} could not be written \\(No space left on device\\); nothing of it was kept"):
+        with atomic_directory(target) as staging:
+            (staging / "part").write_text("half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert list(tmp_path.iterdir()) == []

@@ -48,7 +48,9 @@ def install_input_error_hook() -> None:
 
 
 def cli_main(body: Callable[[], int]) -> int:
-    """Run a command's body; its exit status, or 1 after printing an InputError's (or FloatingPointError's) sentence."""
+    """Run a command's body; its exit status, or 1 after printing an InputError's (or FloatingPointError's) sentence,
+    or 130 (the shell's status for SIGINT) after one line where the user pressed Ctrl+C (an output directory being
+    written is removed on the way out by `atomic.atomic_directory`; a reference being trained keeps nerfstudio's run)."""
     from rich.console import Console
     from rich.text import Text
 
@@ -57,3 +59,6 @@ def cli_main(body: Callable[[], int]) -> int:
     except (InputError, FloatingPointError) as error:
         Console(stderr=True).print(Text(str(error), style="red"), soft_wrap=True)
         return 1
+    except KeyboardInterrupt:
+        Console(stderr=True).print(Text("Interrupted (Ctrl+C).", style="red"), soft_wrap=True)
+        return 130

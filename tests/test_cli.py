@@ -102,3 +102,13 @@ def test_a_full_disk_while_writing_is_one_sentence_and_leaves_nothing(tmp_path):
             (staging / "part").write_text("half")
             raise OSError(errno.ENOSPC, "No space left on device")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_is_one_line_and_status_130(capsys):
+    from sg_nerfstudio.errors import cli_main
+
+    def body() -> int:
+        raise KeyboardInterrupt
+
+    assert cli_main(body) == 130
+    assert capsys.readouterr().err.strip() == "Interrupted (Ctrl+C)."

@@ -56,6 +56,8 @@ def test_meta_images_from_a_photo_folder(photos, tmp_path, capsys):
     folder = tmp_path / "photos"
     shutil.copytree(photos, folder)
     noise_photo(folder / "zz-noise.png", 0)  # a photo of nothing: reported, not registered
+    (folder / "IMG_0001.HEIC").write_bytes(b"not read")  # formats SfM here does not take: named, not read
+    (folder / ".DS_Store").write_bytes(b"hidden")
     before = sorted((p.name, p.stat().st_size) for p in folder.iterdir())
     output = tmp_path / "metas"
     assert meta_images_main([str(folder), "--output", str(output), "--threads", "1"]) == 0
@@ -68,6 +70,7 @@ def test_meta_images_from_a_photo_folder(photos, tmp_path, capsys):
     assert len(meta.photos) == 8
     err = capsys.readouterr().err
     assert "meta-00" in err and "zz-noise.png" in err
+    assert "1 file(s) in" in err and "are not JPEG or PNG and were not read: IMG_0001.HEIC (convert" in err
 
 
 def test_retrieval_pairs_above_the_exhaustive_limit(photos, tmp_path):

@@ -56,6 +56,15 @@ def list_photos(folder: Path) -> list[Path]:
     return photos
 
 
+def files_not_read(folder: Path) -> list[str]:
+    """Names of the files directly inside `folder` that `list_photos` does not take (HEIC, WebP, TIFF, RAW, notes, ...),
+    sorted; hidden files (".DS_Store") left out. Reported to the user, who may want them converted to JPEG."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix.lower() not in PHOTO_SUFFIXES)
+
+
 def load_photo(path: Path) -> Image.Image:
     """The photo as an upright RGB PIL image (fully decoded, so a truncated file fails here)."""
     try:

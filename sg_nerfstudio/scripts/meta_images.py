@@ -25,6 +25,7 @@ from rich.table import Table
 from sg_nerfstudio import cli
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.meta_images import build_meta_images
+from sg_nerfstudio.photos.collection import files_not_read
 from sg_nerfstudio.photos.sfm import SfmSettings
 from sg_nerfstudio.render.threads import available_cores
 from sg_nerfstudio.errors import cli_main
@@ -90,6 +91,13 @@ def run(args: MetaImagesArgs, console: Console) -> int:
         for name, reason in missing:
             left_out.add_row(name, reason)
         console.print(left_out)
+    not_read = files_not_read(args.photos)
+    if not_read:
+        console.print(
+            f"[yellow]{len(not_read)} file(s) in {args.photos} are not JPEG or PNG and were not read: {', '.join(not_read[:5])}"
+            + (" ..." if len(not_read) > 5 else "") + " (convert photos among them to JPEG to include them).[/yellow]",
+            soft_wrap=True,
+        )
     return 0
 
 

@@ -409,6 +409,16 @@ def test_the_other_models_of_a_colmap_project_are_named(tiny_scene, tmp_path):
     assert sibling_models(meta.model_path) == [meta_dir / "sparse" / "1"]
 
 
+def test_a_meta_image_in_nerfstudio_s_layout_is_read(tiny_scene, tmp_path):
+    """`ns-process-data` writes images/ and colmap/sparse/0: a nerfstudio user's own reconstruction as it is."""
+    meta_dir = shutil.copytree(tiny_scene / "meta" / "front", tmp_path / "processed")
+    (meta_dir / "colmap").mkdir()
+    shutil.move(meta_dir / "sparse", meta_dir / "colmap" / "sparse")
+    meta = load_meta_image(meta_dir)
+    assert meta.model_path == meta_dir / "colmap" / "sparse" / "0"
+    assert [p.name for p in meta.photos] == [p.name for p in load_meta_image(tiny_scene / "meta" / "front").photos]
+
+
 def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
     target = tmp_path / "front"
     shutil.copytree(tiny_scene / "meta" / "front", target)

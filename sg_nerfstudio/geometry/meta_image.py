@@ -1,6 +1,7 @@
 """A meta-image: photos plus the COLMAP model that bundles them, read with pycolmap and validated.
 
-Layout: `<dir>/images/<name>` and a COLMAP model in `<dir>/sparse/0/` or `<dir>/sparse/`. Each photo is
+Layout: `<dir>/images/<name>` and a COLMAP model in `<dir>/sparse/0/` or `<dir>/sparse/` (COLMAP's own layout), or
+in `<dir>/colmap/sparse/0/` (what nerfstudio's `ns-process-data` writes). Each photo is
 undistorted to a pinhole image with the same focal length and principal point (any COLMAP camera
 model: pixels are mapped through pycolmap's `cam_from_img` / `img_from_cam`), so the reference model can
 be rendered with a pinhole camera and compared with it.
@@ -279,12 +280,16 @@ def holds_colmap_model(directory: Path) -> bool:
     return (Path(directory) / "images.bin").exists() or (Path(directory) / "images.txt").exists()
 
 
+MODEL_LAYOUTS = (Path("sparse") / "0", Path("sparse"), Path("colmap") / "sparse" / "0", Path("colmap") / "sparse")
+"""Where a meta-image's COLMAP model may be, first found first: COLMAP's layout, then nerfstudio's (`ns-process-data`)."""
+
+
 def find_model(directory: Path) -> Path:
-    for candidate in (directory / "sparse" / "0", directory / "sparse"):
-        if holds_colmap_model(candidate):
-            return candidate
+    for layout in MODEL_LAYOUTS:
+        if holds_colmap_model(directory / layout):
+            return directory / layout
     raise MetaImageError(
-        f"No COLMAP model in {directory}: expected {directory / 'sparse' / '0'} or {directory / 'sparse'} "
+        f"No COLMAP model in {directory}: expected one of {', '.join(str(directory / layout) for layout in MODEL_LAYOUTS)} "
         "holding cameras/images/points3D (.bin or .txt)."
     )
 

@@ -99,11 +99,10 @@ def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
                 raise FileExistsError(f"{target} already exists")
             shutil.rmtree(target)
         os.replace(staging, target)
-    except OSError as error:
+    except BaseException as error:
         shutil.rmtree(staging, ignore_errors=True)
-        if error.errno in (errno.ENOSPC, errno.EDQUOT):  # the disk, not an input: say so, not a traceback
-            raise OutputPathError(f"Output directory {target} could not be written ({error.strerror}); nothing of it was kept. Expected room for it on that disk.") from None
-        raise
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):  # the disk, not an input
+            raise OutputPathError(
+                f"Output directory {target} could not be written ({error.strerror}); nothing of it was kept. Expected room for it on that disk."
+            ) from None
         raise

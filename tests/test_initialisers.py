@@ -332,6 +332,15 @@ def test_baseline_cli_missing_reference_model_is_one_sentence_and_no_output(scen
     assert not out.exists()
 
 
+def test_a_reference_folder_whose_model_is_one_level_down_is_named(scene):
+    """--reference-colmap given the dataset folder (reference/) rather than its model: the sentence names the model."""
+    folder = scene / "reference"
+    expected = f"Reference COLMAP model {folder} was not found; expected a folder with cameras, images and points3D (.bin or .txt) (this one has a model in {folder / 'colmap' / 'sparse' / '0'})."
+    with pytest.raises(ReferenceSourceError) as raised:
+        ReferenceSource(folder, folder / "images").load()
+    assert str(raised.value) == expected
+
+
 def test_a_truncated_reference_image_is_one_sentence(scene, tmp_path):
     images = tmp_path / "images"
     shutil.copytree(scene / "reference" / "images", images)

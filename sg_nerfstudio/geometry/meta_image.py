@@ -280,18 +280,24 @@ def holds_colmap_model(directory: Path) -> bool:
     return (Path(directory) / "images.bin").exists() or (Path(directory) / "images.txt").exists()
 
 
-MODEL_LAYOUTS = (Path("sparse") / "0", Path("sparse"), Path("colmap") / "sparse" / "0", Path("colmap") / "sparse")
-"""Where a meta-image's COLMAP model may be, first found first: COLMAP's layout, then nerfstudio's (`ns-process-data`)."""
+COLMAP_LAYOUTS = (Path("sparse") / "0", Path("sparse"), Path("colmap") / "sparse" / "0", Path("colmap") / "sparse")
+"""Where a COLMAP model sits under a folder, first found first: COLMAP's own layout (and `sg-meta-images`'), then
+nerfstudio's (`ns-process-data`)."""
+
+
+def model_below(folder: Path) -> Optional[Path]:
+    """The first of COLMAP_LAYOUTS under `folder` that holds a COLMAP model, or None."""
+    return next((Path(folder) / layout for layout in COLMAP_LAYOUTS if holds_colmap_model(Path(folder) / layout)), None)
 
 
 def find_model(directory: Path) -> Path:
-    for layout in MODEL_LAYOUTS:
-        if holds_colmap_model(directory / layout):
-            return directory / layout
-    raise MetaImageError(
-        f"No COLMAP model in {directory}: expected one of {', '.join(str(directory / layout) for layout in MODEL_LAYOUTS)} "
-        "holding cameras/images/points3D (.bin or .txt)."
-    )
+    model = model_below(directory)
+    if model is None:
+        raise MetaImageError(
+            f"No COLMAP model in {directory}: expected one of {', '.join(str(directory / layout) for layout in COLMAP_LAYOUTS)} "
+            "holding cameras/images/points3D (.bin or .txt)."
+        )
+    return model
 
 
 def sibling_models(model_path: Path) -> list[Path]:

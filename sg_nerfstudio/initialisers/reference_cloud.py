@@ -23,7 +23,7 @@ import pycolmap
 
 from sg_nerfstudio.atomic import atomic_directory
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.geometry.meta_image import decoded_size, holds_colmap_model
+from sg_nerfstudio.geometry.meta_image import decoded_size, holds_colmap_model, model_below
 from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, VerifiedMatcher
 from sg_nerfstudio.initialisers.retrieval import reference_pairs
 
@@ -47,8 +47,10 @@ class ReferenceSource:
         """The reconstruction, validated: every registered image exists in `images_path`."""
         model = Path(self.colmap_path)
         if not holds_colmap_model(model):
+            below = model_below(model)
             raise ReferenceSourceError(
-                f"Reference COLMAP model {model} was not found; expected a folder with cameras, images and points3D (.bin or .txt)."
+                f"Reference COLMAP model {model} was not found; expected a folder with cameras, images and points3D (.bin or .txt)"
+                + (f" (this one has a model in {below})." if below else ".")
             )
         try:
             reconstruction = pycolmap.Reconstruction(str(model))

@@ -25,7 +25,7 @@ from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatama
 
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.features import FeatureCache, TeacherConfig, build_teacher, extract_all, teacher_feature_dim, teacher_grid_size
-from sg_nerfstudio.geometry.meta_image import decoded_size, holds_colmap_model
+from sg_nerfstudio.geometry.meta_image import COLMAP_LAYOUTS, decoded_size, holds_colmap_model, model_below
 
 PCA_SAMPLE_SIZE = 20000
 MIN_SEED_POINTS = 4
@@ -34,11 +34,6 @@ MIN_SEED_POINTS = 4
 
 class DatasetInputError(InputError):
     """A dataset the datamanager cannot train on."""
-
-
-COLMAP_LAYOUTS = (Path("colmap/sparse/0"), Path("sparse/0"), Path("sparse"), Path("colmap/sparse"))
-"""Where a COLMAP model sits under a dataset folder: nerfstudio's `ns-process-data` layout first, then COLMAP's own
-and `sg-meta-images`' (`sparse/0`)."""
 
 
 def check_colmap_model(config: "FeatureDatamanagerConfig") -> None:
@@ -52,9 +47,9 @@ def check_colmap_model(config: "FeatureDatamanagerConfig") -> None:
     model = data / parser.colmap_path
     if holds_colmap_model(model):
         return
-    found = [layout for layout in COLMAP_LAYOUTS if holds_colmap_model(data / layout)]
-    hint = (f"this folder has one in {data / found[0]}: add `--colmap-path {found[0]}` after `colmap`" if found
-            else f"expected cameras, images and points3D (.bin or .txt) there, or a folder whose model is in {' or '.join(str(l) for l in COLMAP_LAYOUTS[1:3])}")
+    found = model_below(data)
+    hint = (f"this folder has one in {found}: add `--colmap-path {found.relative_to(data)}` after `colmap`" if found
+            else f"expected cameras, images and points3D (.bin or .txt) there, or a folder whose model is in {' or '.join(str(l) for l in COLMAP_LAYOUTS[:2])}")
     raise DatasetInputError(f"No COLMAP model in {model}; {hint}.")
 
 

@@ -102,7 +102,7 @@ def test_prepare_photos_applies_exif_grey_and_cap(tmp_path):
     np.testing.assert_array_equal(grey16[0, :, 1], np.rint(ramp[0] / 257.0).astype(np.uint8))
 
 
-@pytest.mark.parametrize("case", ["missing", "a-file", "empty", "two", "truncated", "no-model", "camera-model"])
+@pytest.mark.parametrize("case", ["missing", "a-file", "empty", "two", "truncated", "no-model", "camera-model", "max-size", "threads"])
 def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     folder = tmp_path / "photos"
     if case == "a-file":
@@ -118,15 +118,17 @@ def test_bad_photo_folders_are_one_sentence(case, tmp_path, capfd):
     if case == "two":
         for seed in range(2):
             noise_photo(folder / f"noise{seed}.png", seed)
-    if case in ("no-model", "camera-model"):
+    if case in ("no-model", "camera-model", "max-size", "threads"):
         for seed in range(3):
             noise_photo(folder / f"noise{seed}.png", seed)
     output = tmp_path / "metas"
-    model = ["--camera-model", "OPENCV_TYPO"] if case == "camera-model" else []
-    assert meta_images_main([str(folder), "--output", str(output), "--threads", "1", *model]) == 1
+    extra = {"camera-model": ["--camera-model", "OPENCV_TYPO"], "max-size": ["--max-size", "-3"]}.get(case, [])
+    threads = "0" if case == "threads" else "1"
+    assert meta_images_main([str(folder), "--output", str(output), "--threads", threads, *extra]) == 1
     err = capfd.readouterr().err  # file-descriptor level: COLMAP's glog writes there, not through sys.stderr
     expected = {"missing": "does not exist", "a-file": f"Photo folder {folder} is a file; expected a directory", "empty": "holds no JPEG or PNG", "two": f"{folder} holds 2 JPEG or PNG photo(s); expected at least 3", "truncated": "a.jpg could not be decoded",
-                "no-model": "formed no model", "camera-model": "'OPENCV_TYPO' is not a COLMAP camera model; expected one of SIMPLE_PINHOLE"}[case]
+                "no-model": "formed no model", "camera-model": "'OPENCV_TYPO' is not a COLMAP camera model; expected one of SIMPLE_PINHOLE",
+                "max-size": "--max-size must be 0 (photos as they are) or a long side in pixels, got -3.", "threads": "--threads must be 1 or more"}[case]
     assert expected in err and "Traceback" not in err
     assert "Failed to create any sparse model" not in err and "No images with matches" not in err  # the mapper's own lines
     assert not output.exists() and not list(tmp_path.glob(".metas*"))

@@ -427,9 +427,9 @@ def copy_meta(tiny_scene: Path, tmp_path: Path) -> Path:
 
 @pytest.mark.parametrize("case", [
     "not_feature_splat", "config_is_the_run_directory", "missing_model", "corrupt_model", "missing_photo", "too_few_photos", "wrong_size", "truncated_jpeg",
-    "meta_is_a_file", "output_holds_the_meta_image", "output_cannot_be_created", "nan_camera", "nan_point", "output_is_a_file", "nan_lr_flag", "negative_steps_preset", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
+    "meta_is_a_file", "output_holds_the_meta_image", "output_cannot_be_created", "nan_camera", "nan_point", "output_is_a_file", "nan_lr_flag", "threads_zero", "cuda_without_cuda", "negative_steps_preset", "negative_scale", "nan_init", "sees_nothing", "render_teacher_on_features",
 ])
-def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys):
+def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config, tiny_scene, tmp_path, capsys, monkeypatch):
     meta_dir = copy_meta(tiny_scene, tmp_path)
     config = reference_config
     init = "identity"
@@ -451,6 +451,8 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "nan_point": "observes 3D points that are not finite",
         "output_is_a_file": "out is a file; expected a directory there",
         "nan_lr_flag": "Registration setting lr (--lr) must be a finite number above 0, got nan.",
+        "threads_zero": "--threads must be 1 or more",
+        "cuda_without_cuda": "--device cuda was given, but torch sees no CUDA device on this machine; expected --device cpu or auto.",
         "negative_steps_preset": "steps must be a whole number of 0 or more, got -3.",
         "negative_scale": "scale must be positive",
         "nan_init": "finite 4x4",
@@ -490,6 +492,11 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         model.write_binary(str(meta_dir / "sparse" / "0"))
     elif case == "nan_lr_flag":
         extra = ["--lr", "nan"]
+    elif case == "threads_zero":
+        extra = ["--threads", "0"]
+    elif case == "cuda_without_cuda":  # a machine without CUDA, whatever this one has
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+        extra = ["--device", "cuda"]
     elif case == "negative_steps_preset":
         preset = tmp_path / "preset.yaml"
         preset.write_text("steps: -3\n")

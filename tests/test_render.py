@@ -268,7 +268,7 @@ def test_default_strategy_densifies_with_cpu_info(backend):
 def test_threads_setting_sizes_torch_and_numba_pools():
     import numba
 
-    from sg_nerfstudio.render.threads import available_cores, set_threads
+    from sg_nerfstudio.render.threads import ThreadCountError, available_cores, set_threads
 
     before = (torch.get_num_threads(), numba.get_num_threads())
     try:
@@ -276,6 +276,10 @@ def test_threads_setting_sizes_torch_and_numba_pools():
         assert (torch.get_num_threads(), numba.get_num_threads()) == (1, 1)
         assert set_threads(None) == available_cores() >= 1
         assert torch.get_num_threads() == available_cores()
+        for wrong in (0, -1):  # COLMAP's "-1: all cores" is not ours: one sentence, the pools as they were
+            with pytest.raises(ThreadCountError, match=f"--threads must be 1 or more .*, got {wrong}\\."):
+                set_threads(wrong)
+            assert torch.get_num_threads() == available_cores()
     finally:
         torch.set_num_threads(before[0])
         numba.set_num_threads(before[1])

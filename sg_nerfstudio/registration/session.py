@@ -294,12 +294,14 @@ def default_preset(load_config: Path, device: str) -> str:
 
 
 def resolve_device(device: str) -> str:
-    """'auto' -> cuda when available, else cpu."""
-    if device != "auto":
-        return device
+    """'auto' -> cuda when available, else cpu; 'cuda' where torch sees no CUDA device is an ArgumentError."""
     import torch
 
-    return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ArgumentError("--device cuda was given, but torch sees no CUDA device on this machine; expected --device cpu or auto.")
+    return device
 
 
 def read_reference_part(job: RegistrationJob) -> MergePart:

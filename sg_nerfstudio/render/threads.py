@@ -19,6 +19,12 @@ from typing import Optional
 
 import torch
 
+from sg_nerfstudio.errors import InputError
+
+
+class ThreadCountError(InputError):
+    """A thread count no pool can have."""
+
 
 def available_cores() -> int:
     """Cores this process may run on (its CPU affinity), at least 1."""
@@ -28,9 +34,17 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def check_thread_count(threads: Optional[int]) -> None:
+    """ThreadCountError unless `threads` is None (the default) or at least 1."""
+    if threads is not None and threads < 1:
+        raise ThreadCountError(f"--threads must be 1 or more (default: the {available_cores()} cores this process may use), got {threads}.")
+
+
 def set_threads(threads: Optional[int] = None) -> int:
-    """Size torch's and numba's thread pools to `threads` (default: `available_cores()`); returns the count."""
-    count = max(1, threads or available_cores())
+    """Size torch's and numba's thread pools to `threads` (default: `available_cores()`); returns the count.
+    ThreadCountError (one sentence) for a count under 1."""
+    check_thread_count(threads)
+    count = threads or available_cores()
     torch.set_num_threads(count)
     import numba
 

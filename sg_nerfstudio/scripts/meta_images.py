@@ -25,9 +25,9 @@ from rich.table import Table
 from sg_nerfstudio import cli
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.meta_images import build_meta_images
-from sg_nerfstudio.photos.collection import files_not_read
+from sg_nerfstudio.photos.collection import PhotoFolderError, files_not_read
 from sg_nerfstudio.photos.sfm import SfmSettings
-from sg_nerfstudio.render.threads import available_cores
+from sg_nerfstudio.render.threads import available_cores, check_thread_count
 from sg_nerfstudio.errors import cli_main
 
 
@@ -41,7 +41,7 @@ class MetaImagesArgs:
     """Directory to create: <output>/meta-NN/ per model, meta_images.json; refused if it exists unless --overwrite, and
     always where it is the photo folder or a folder above it (--overwrite would replace the photos)."""
     max_size: int = 1024
-    """Working resolution: long side of the photos SfM (and later registration) sees, in pixels."""
+    """Working resolution: long side of the photos SfM (and later registration) sees, in pixels (0: as they are)."""
     exhaustive_limit: int = 60
     """Match exhaustively up to this many photos; above, each photo with its most similar ones."""
     retrieval_neighbours: int = 20
@@ -58,6 +58,9 @@ class MetaImagesArgs:
 
 
 def run(args: MetaImagesArgs, console: Console) -> int:
+    if args.max_size < 0:
+        raise PhotoFolderError(f"--max-size must be 0 (photos as they are) or a long side in pixels, got {args.max_size}.")
+    check_thread_count(args.threads)
     set_colmap_verbosity(args.verbose)
     settings = SfmSettings(
         camera_model=args.camera_model, exhaustive_limit=args.exhaustive_limit, retrieval_neighbours=args.retrieval_neighbours,

@@ -164,6 +164,7 @@ def measure(args: ChildArgs) -> dict:
     from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, prepare_photos
     from sg_nerfstudio.registration.optimize import effective_near_plane, register
     from sg_nerfstudio.registration.reference import load_reference
+    from sg_nerfstudio.registration.session import resolve_device
     from sg_nerfstudio.registration.settings import load_preset
     from sg_nerfstudio.render.threads import set_threads
 
@@ -177,7 +178,7 @@ def measure(args: ChildArgs) -> dict:
     if args.render_budget is not None:
         settings = replace(settings, render_budget=args.render_budget)
     started = time.perf_counter()
-    reference = load_reference(args.load_config, device=args.device)
+    reference = load_reference(args.load_config, device=resolve_device(args.device))
     loaded = time.perf_counter() - started
     meta = load_meta_image(args.meta_image)
     truth = Sim3.read_json(args.meta_image / "gt_transform.json", "Ground truth")

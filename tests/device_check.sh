@@ -70,8 +70,8 @@ run() {
     timeout 150 ns-register-meta $common --output-dir /tmp/reg_fast --config fast-cpu --device cuda > "$OUT/register_fast_cpu_preset.log" 2>&1
     note "ns-register-meta --config fast-cpu on CUDA rc=$? in $(since $t) s"
     t=$(date +%s)
-    timeout 150 ns-register-meta $common --output-dir /tmp/reg_paper --steps 600 > "$OUT/register_default_600_steps.log" 2>&1
-    note "ns-register-meta (default preset on CUDA, --steps 600) rc=$? in $(since $t) s"
+    timeout 150 ns-register-meta $common --output-dir /tmp/reg_paper --optimiser.steps 600 > "$OUT/register_default_600_steps.log" 2>&1
+    note "ns-register-meta (default preset on CUDA, --optimiser.steps 600) rc=$? in $(since $t) s"
     for log in register_fast_cpu_preset register_default_600_steps; do tail -12 "$OUT/$log.log" | tee -a "$summary"; done
     cd "$repo"
     echo; echo "=== $(since $start) s"; cat "$summary"

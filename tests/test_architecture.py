@@ -73,3 +73,15 @@ def test_presets_ship_inside_the_package_and_load_by_name(name):
 def test_repository_configs_are_the_shipped_presets(name):
     in_repository = Path(__file__).resolve().parents[1] / "configs" / "register" / f"{name}.yaml"
     assert in_repository.read_text() == (PACKAGE / "registration" / "presets" / f"{name}.yaml").read_text()
+
+
+def test_the_anchored_start_is_entered_through_its_package_only():
+    """Outside registration/anchored_start, the package's modules import it by its one entry (its __init__), never its
+    inner modules: the anchored start can be read top-down from `start_from_anchors`."""
+    inner = "sg_nerfstudio.registration.anchored_start."
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if "anchored_start" in path.relative_to(PACKAGE).parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            assert not any(name.startswith(inner) for name in names), f"{path.relative_to(PACKAGE)} imports {names} past the entry"

@@ -30,7 +30,7 @@ def suite(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def preset(tmp_path_factory) -> Path:
-    values = yaml.safe_load(Path("configs/register/fast-cpu.yaml").read_text()) | {"steps": 4}
+    values = {"base": "fast-cpu", "optimiser": {"steps": 4}}
     path = tmp_path_factory.mktemp("preset") / "short.yaml"
     path.write_text(yaml.safe_dump(values))
     return path
@@ -38,7 +38,8 @@ def preset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def wide_preset(tmp_path_factory) -> Path:
-    values = yaml.safe_load(Path("configs/register/wide-cpu.yaml").read_text()) | {"steps": 3, "pyramid": [2], "pyramid_steps": 2, "hypotheses": 2, "hypotheses_kept": 2, "refine_steps": 2}
+    values = {"base": "wide-cpu", "optimiser": {"steps": 3}, "coarse_to_fine": {"factors": [2], "steps": 2}, "hypotheses": {"count": 2, "kept": 2},
+              "last_stage": {"steps": 2}}
     path = tmp_path_factory.mktemp("preset") / "wide-short.yaml"
     path.write_text(yaml.safe_dump(values))
     return path
@@ -270,7 +271,7 @@ def test_anchored_photos_keeps_the_photos_with_the_most_correspondences():
     runner = SceneRunner.__new__(SceneRunner)  # no reference or scene needed for the choice
     runner.initialiser = type("Stub", (), {"keypoints": lambda self, subject: photos})()
     runner.reference_unusable = None
-    settings = RegistrationSettings(keypoint_weight=1.0)
+    settings = RegistrationSettings().changed(anchors={"weight": 1.0})
     for count, expected in ((1, ["b"]), (2, ["b", "c"]), (0, ["a", "b", "c"])):
         runner.options = BenchOptions(settings=settings, anchored_photos=count)
         assert [k.name for k in runner.keypoints(None, settings)] == expected
@@ -330,7 +331,7 @@ def test_a_twin_copy_has_its_photos_pose_zoomed_camera_and_observations(suite, t
     runner = TwinSceneRunner.__new__(TwinSceneRunner)
     runner.initialiser = type("Stub", (), {"keypoints": lambda self, subject: photos})()
     runner.reference_unusable = None
-    runner.options = BenchOptions(settings=RegistrationSettings(keypoint_weight=1.0))
+    runner.options = BenchOptions(settings=RegistrationSettings().changed(anchors={"weight": 1.0}))
     subject = type("Subject", (), {"photos": [type("P", (), {"name": n})() for n in ("a", "b", "twin_a")]})()
     assert [k.name for k in runner.keypoints(subject, runner.options.settings)] == ["a", "twin_a"]
 

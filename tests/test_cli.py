@@ -27,8 +27,8 @@ def test_a_field_docstring_becomes_paragraphs_with_its_list_items_kept():
 
 
 def test_register_meta_help_wraps_each_flag_description_as_one_paragraph(monkeypatch, capsys):
-    # tyro on its own keeps the docstring's line break after "registered into", at any width
-    monkeypatch.setenv("COLUMNS", "200")
+    # tyro on its own keeps the docstring's line break after "registered into", at any width (80: one column of help)
+    monkeypatch.setenv("COLUMNS", "80")
     with pytest.raises(SystemExit) as stop:
         register_main(["--help"])
     assert stop.value.code == 0

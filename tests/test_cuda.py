@@ -21,7 +21,7 @@ from sg_nerfstudio.render.rasterization import gsplat_available
 
 pytestmark = pytest.mark.skipif(not gsplat_available(), reason="needs CUDA and gsplat (gsplat's rasterizer has no CPU kernels)")
 
-SETTINGS = RegistrationSettings(steps=60, lr=0.004, lr_final=0.0002, render_scale=2.0, objective="teacher-on-render", seed=0)
+SETTINGS = RegistrationSettings().changed(optimiser={"steps": 60, "lr": 0.004, "lr_final": 0.0002}, objective={"render_scale": 2.0, "kind": "teacher-on-render"}, seed=0)
 
 
 @pytest.fixture(scope="module")

@@ -171,7 +171,7 @@ def test_initialisers_recover_the_ground_truth_on_clean_renders(method, initiali
 def test_keypoint_anchors_are_inliers_that_reproject_under_the_truth(initialiser, scene, tmp_path):
     """`Initialiser.keypoints`: per registered photo its RANSAC inliers, which reproject under the ground truth
     to within the RANSAC threshold (as the keypoint term measures them); photos with nothing to match have none."""
-    from sg_nerfstudio.registration.keypoints import KeypointTerm
+    from sg_nerfstudio.registration.anchored_start.anchors import KeypointTerm
 
     meta = load_meta_image(scene / "meta" / "front")
     anchors = initialiser.keypoints(meta)
@@ -190,7 +190,7 @@ def test_photos_too_weak_to_register_alone_lend_their_rig_inliers_as_anchors(ini
     under the ground truth as the alone-registered ones do."""
     from dataclasses import replace as replace_settings
 
-    from sg_nerfstudio.registration.keypoints import KeypointTerm
+    from sg_nerfstudio.registration.anchored_start.anchors import KeypointTerm
 
     meta = load_meta_image(scene / "meta" / "front")
     alone = initialiser.keypoints(meta)

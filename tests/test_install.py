@@ -46,6 +46,6 @@ def test_sg_demo_runs_from_a_non_editable_install_outside_the_repository(tmp_pat
     record = json.loads((elsewhere / "demo" / "registrations" / "front" / "transform.json").read_text())
     # the shipped fast-cpu preset; the tiny scene gives SIFT nothing to match, so the dense objective runs alone: 100 main
     # steps and the 40-step dense-SIFT refine stage
-    assert record["steps"] == 140 and record["settings"]["objective"] == "teacher-on-render"
-    assert record["settings"]["refine_teacher"] == "dense-sift" and not record["settings"]["refine_anchored"]
+    assert record["steps"] == 140 and record["settings"]["objective"]["kind"] == "teacher-on-render"
+    assert record["settings"]["last_stage"]["teacher"] == "dense-sift" and not record["settings"]["last_stage"]["with_anchors"]
     assert (elsewhere / "demo" / "registrations" / "front" / "metrics.json").is_file()

@@ -20,10 +20,11 @@ from sg_nerfstudio.features import TeacherConfig, build_teacher
 from sg_nerfstudio.geometry.frames import viewmat
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3, decompose, perturbed
-from sg_nerfstudio.registration.camera_fit import adjusted_cameras, fit_cameras
+from sg_nerfstudio.registration.anchored_start.camera_fit import adjusted_cameras, fit_cameras
 from sg_nerfstudio.registration.depth_agreement import PointPixels, log_depth_ratios, summarise
 from sg_nerfstudio.registration.metrics import pose_errors
-from sg_nerfstudio.registration import hypotheses, optimize, scale_search, schedules, stages, verdict
+from sg_nerfstudio.registration import hypotheses, optimize, schedules, stages, verdict
+from sg_nerfstudio.registration.anchored_start import scale_search
 from sg_nerfstudio.registration.objectives import (
     ObjectiveSettingsError, PhotoLosses, build_objective, prepare_photos, refine_settings, teacher_on_render_target,
 )
@@ -33,7 +34,7 @@ from sg_nerfstudio.registration.robust import RobustAggregator, RobustSettingsEr
 from sg_nerfstudio.registration.settings import RegistrationSettings, SettingsRangeError, check_ranges
 from sg_nerfstudio.scripts.register_meta import main as register_main
 
-FAST = dict(steps=150, lr=0.004, lr_final=0.0002, images_per_step=0, render_scale=2.0, seed=0)
+FAST = RegistrationSettings().changed(optimiser={"steps": 150, "lr": 0.004, "lr_final": 0.0002, "photos_per_step": 0}, objective={"render_scale": 2.0}, seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +137,7 @@ def test_registration_converges_where_the_optimum_is_known_and_leaves_the_model_
     so this checks frames, gradients, the update and the loop independently of how good the model is."""
     before_digest = checkpoint_digest(reference.checkpoint_path)
     before_state = {k: v.clone() for k, v in reference.model.state_dict().items()}
-    settings = RegistrationSettings(**FAST, objective=objective, render_teacher=render_teacher)
+    settings = FAST.changed(objective={"kind": objective, "render_teacher": render_teacher})
     photos = rendered_targets(reference, meta, prepare_photos(reference, meta, settings), ground_truth, settings)
     start = perturbed_start(meta, ground_truth, 0, 4.0, 0.06, 0.06)
     result = register(reference, meta, start, settings, photos=photos)
@@ -155,21 +156,21 @@ def test_render_teacher_replaces_the_reference_teacher_only_where_renders_are_de
     """--render-teacher: the photos and renders are described by the named descriptor (at its own default input
     size unless one is given); the features objective, which compares the distilled field, refuses it."""
     assert reference.teacher.name == "offline"
-    sift = build_objective(reference, RegistrationSettings(**FAST, objective="teacher-on-render", render_teacher="dense-sift"))
+    sift = build_objective(reference, FAST.changed(objective={"kind": "teacher-on-render", "render_teacher": "dense-sift"}))
     assert sift.teacher.settings()["teacher"] == "dense_sift" and sift.teacher.input_size == 256
-    sized = build_objective(reference, RegistrationSettings(**FAST, objective="photometric", render_teacher="dense-sift", teacher_input_size=128))
+    sized = build_objective(reference, FAST.changed(objective={"kind": "photometric", "render_teacher": "dense-sift", "teacher_input_size": 128}))
     assert sized.teacher.grid_size == 16
-    own = build_objective(reference, RegistrationSettings(**FAST, objective="teacher-on-render", render_teacher="offline"))
+    own = build_objective(reference, FAST.changed(objective={"kind": "teacher-on-render", "render_teacher": "offline"}))
     assert own.teacher.input_size == reference.teacher.input_size and own.teacher.settings()["teacher"] == "offline_hog"
-    with pytest.raises(ObjectiveSettingsError, match=r"--render-teacher dense-sift describes rendered images .* the features objective compares"):
-        build_objective(reference, RegistrationSettings(**FAST, objective="features", render_teacher="dense-sift"))
+    with pytest.raises(ObjectiveSettingsError, match=r"--objective.render-teacher dense-sift describes rendered images .* the features objective compares"):
+        build_objective(reference, FAST.changed(objective={"kind": "features", "render_teacher": "dense-sift"}))
 
 
 def test_batched_rendering_gives_the_per_photo_losses(reference, meta, ground_truth, monkeypatch):
     """Photos rendered together (one packed projection) or one per call give the same losses and coverage."""
     from sg_nerfstudio.registration import objectives
 
-    settings = RegistrationSettings(**FAST, objective="teacher-on-render")
+    settings = FAST.changed(objective={"kind": "teacher-on-render"})
     photos = prepare_photos(reference, meta, settings)
     transform = (reference.world_to_dataparser @ ground_truth).to_torch()
     indices = list(range(len(photos)))[::-1]
@@ -186,7 +187,7 @@ def test_batched_rendering_gives_the_per_photo_losses(reference, meta, ground_tr
 def test_culling_to_the_visible_gaussians_gives_the_same_losses_and_recull_follows_the_pose(reference, meta, ground_truth):
     """The culled model renders what the whole model renders, at the cull pose and within the re-cull bounds;
     a pose beyond them is culled again (level of detail off: this checks the cull alone)."""
-    settings = RegistrationSettings(**FAST, objective="teacher-on-render", level_of_detail=0.0)
+    settings = FAST.changed(objective={"kind": "teacher-on-render"}, level_of_detail={"voxel_pixels": 0.0})
     objective = build_objective(reference, settings)
     photos = prepare_photos(reference, meta, settings, objective)
     culled = PhotoLosses(reference, photos, objective, settings, 0.01)
@@ -210,14 +211,14 @@ def test_culling_to_the_visible_gaussians_gives_the_same_losses_and_recull_follo
 
 def test_same_seed_same_transform(reference, meta, ground_truth):
     start = perturbed_start(meta, ground_truth, 5, 3.0, 0.05, 0.05)
-    settings = RegistrationSettings(**{**FAST, "steps": 15, "images_per_step": 2})
+    settings = FAST.changed(optimiser={"steps": 15, "photos_per_step": 2})
     first = register(reference, meta, start, settings).transform
     second = register(reference, meta, start, settings).transform
     np.testing.assert_allclose(first, second, atol=1e-6, rtol=0)
 
 
 def test_lts_ignores_the_worst_photos(reference, meta, ground_truth):
-    result = register(reference, meta, ground_truth, RegistrationSettings(**{**FAST, "steps": 10}))
+    result = register(reference, meta, ground_truth, FAST.changed(optimiser={"steps": 10}))
     kept = [row["kept"] for row in result.history]
     assert 0 < sum(kept) < len(kept)
     worst = int(np.argmax(result.initial_losses))
@@ -225,7 +226,7 @@ def test_lts_ignores_the_worst_photos(reference, meta, ground_truth):
 
 
 def test_retrim_schedule_renders_only_the_counted_photos_between_re_decisions():
-    schedule = schedules.RetrimSchedule(5, RegistrationSettings(retrim_every=3), warmup_steps=2)
+    schedule = schedules.RetrimSchedule(5, RegistrationSettings().changed(robust={"retrim_every": 3}), warmup_steps=2)
     counted = np.array([True, False, True, False, True])
     batches = []
     for _ in range(8):
@@ -237,14 +238,14 @@ def test_retrim_schedule_renders_only_the_counted_photos_between_re_decisions():
     assert batches == [every, every, every, kept, kept, every, kept, kept]
     paper = schedules.RetrimSchedule(5, RegistrationSettings(), warmup_steps=0)
     assert all(paper.next() == [0, 1, 2, 3, 4] for _ in range(4))
-    with pytest.raises(SettingsRangeError, match=r"retrim_every \(--retrim-every\) must be a whole number of 1 or more, got 0"):
-        check_ranges(RegistrationSettings(retrim_every=0))
+    with pytest.raises(SettingsRangeError, match=r"robust\.retrim_every \(--robust\.retrim-every\) must be a whole number of 1 or more, got 0"):
+        check_ranges(RegistrationSettings().changed(robust={"retrim_every": 0}))
 
 
 def test_retrimming_less_often_renders_less_and_ends_where_the_paper_rule_does(reference, meta, ground_truth):
     start = perturbed_start(meta, ground_truth, 5, 3.0, 0.05, 0.05)
-    paper = register(reference, meta, start, RegistrationSettings(**{**FAST, "steps": 60}))
-    lazy = register(reference, meta, start, RegistrationSettings(**{**FAST, "steps": 60, "retrim_every": 4}))
+    paper = register(reference, meta, start, FAST.changed(optimiser={"steps": 60}))
+    lazy = register(reference, meta, start, FAST.changed(optimiser={"steps": 60}, robust={"retrim_every": 4}))
     photos = len(paper.photo_names)
     assert len(paper.history) == 60 * photos and len(lazy.history) < 60 * photos
     # every photo the paper's rule always ignored is ignored in every step of the lazy one too, rendered or not
@@ -278,15 +279,15 @@ def test_robust_rule_trims_only_after_its_warm_up():
     assert kept.tolist() == [True, True, False] and float(objective.detach()) == pytest.approx(0.105)
 
 
-@pytest.mark.parametrize("setting, value, flag", [("trim_after", 1.0, "--trim-after"), ("lts_percentile", 0.0, "--lts-percentile"), ("outlier_z", -1.0, "--outlier-z")])
+@pytest.mark.parametrize("setting, value, flag", [("trim_after", 1.0, "--robust.trim-after"), ("lts_percentile", 0.0, "--robust.lts-percentile"), ("outlier_z", -1.0, "--robust.outlier-z")])
 def test_robust_settings_out_of_range_are_one_sentence(setting, value, flag):
     with pytest.raises(RobustSettingsError, match=flag):
-        check_robust_settings(RegistrationSettings(**{setting: value}))
-    check_robust_settings(RegistrationSettings(trim_after=0.5))
+        check_robust_settings(RegistrationSettings().changed(robust={setting: value}))
+    check_robust_settings(RegistrationSettings().changed(robust={"trim_after": 0.5}))
 
 
 def test_outlier_lts_ignores_a_wrong_photo_and_keeps_the_others(reference, meta, ground_truth):
-    settings = RegistrationSettings(**{**FAST, "steps": 10, "robust": "outlier-lts"})
+    settings = FAST.changed(optimiser={"steps": 10}, robust={"rule": "outlier-lts"})
     photos = prepare_photos(reference, meta, settings)
     wrong = copy.copy(photos[1])
     # A map no pose explains: the photo's descriptor inverted. (The photo upside down was used before; on the
@@ -296,7 +297,7 @@ def test_outlier_lts_ignores_a_wrong_photo_and_keeps_the_others(reference, meta,
     result = register(reference, meta, ground_truth, settings, photos=photos)
     assert result.ignored_fraction[1] == pytest.approx(1.0)
     assert np.delete(result.ignored_fraction, 1).max() == 0.0
-    median = register(reference, meta, ground_truth, replace(settings, robust="lts"), photos=photos)
+    median = register(reference, meta, ground_truth, settings.changed(robust={"rule": "lts"}), photos=photos)
     assert np.delete(median.ignored_fraction, 1).max() > 0.0  # the median rule also drops photos that agree
 
 
@@ -314,14 +315,14 @@ def test_cli_writes_every_output(reference_config, tiny_scene, tmp_path, capsys,
     code, err = run_cli([
         "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
         "--init", str(init), "--gt", str(tiny_scene / "meta" / "front" / "gt_transform.json"),
-        "--steps", "12", "--images-per-step", "2", "--lr", "0.004", "--refine-steps", "3", "--retrim-every", "1",  # two rows a step
+        "--optimiser.steps", "12", "--optimiser.photos-per-step", "2", "--optimiser.lr", "0.004", "--last-stage.steps", "3", "--robust.retrim-every", "1",  # two rows a step
     ], capsys)
     assert code == 0, err
     result = out / "front"
     record = json.loads((result / "transform.json").read_text())
     assert {"matrix", "scale", "rotation_wxyz", "translation", "initial", "final_trimmed_loss", "steps", "wall_time_s", "settings", "verdict"} <= set(record)
     assert record["verdict"] in {"registered", "uncertain", "failed"} and record["verdict_reasons"] and "sharpness" in record["verdict_evidence"]
-    assert record["steps"] == 12 + 3 and record["settings"]["images_per_step"] == 2 and record["settings"]["retrim_every"] == 1
+    assert record["steps"] == 12 + 3 and record["settings"]["optimiser"]["photos_per_step"] == 2 and record["settings"]["robust"]["retrim_every"] == 1
     rendered = record["rendered_model"]  # the tiny reference is far within the render budget: merged at 1 px
     assert rendered["voxel_pixels"] == 1.0 and 0 < rendered["rendered"] <= rendered["gaussians"] and rendered["culls"] >= 1
     np.testing.assert_allclose(record["initial"]["matrix"], start, atol=1e-9)
@@ -346,7 +347,7 @@ def test_cli_without_config_picks_the_preset_for_the_device_and_labels_its_compa
     out = tmp_path / "out"
     code = register_main([
         "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
-        "--init", str(tiny_scene / "meta" / "front" / "gt_transform.json"), "--steps", "2", "--render-budget", "1",
+        "--init", str(tiny_scene / "meta" / "front" / "gt_transform.json"), "--optimiser.steps", "2", "--level-of-detail.render-budget", "1",
     ])
     printed = capsys.readouterr().out
     assert code == 0
@@ -356,7 +357,7 @@ def test_cli_without_config_picks_the_preset_for_the_device_and_labels_its_compa
     expected = "paper" if torch.cuda.is_available() else "fast-cpu"  # the tiny reference uses the offline teacher
     assert f"Registration preset: {expected}" in printed
     settings = json.loads((out / "front" / "transform.json").read_text())["settings"]
-    assert settings["objective"] == ("features" if expected == "paper" else "teacher-on-render") and settings["steps"] == 2
+    assert settings["objective"]["kind"] == ("features" if expected == "paper" else "teacher-on-render") and settings["optimiser"]["steps"] == 2
     from sg_nerfstudio.registration.outputs import COMPARISON_LONG_SIDE, TITLE_HEIGHT
 
     photo = load_meta_image(tiny_scene / "meta" / "front").photos[0]
@@ -450,14 +451,14 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         "nan_camera": "has camera parameters [nan,",
         "nan_point": "observes 3D points that are not finite",
         "output_is_a_file": "out is a file; expected a directory there",
-        "nan_lr_flag": "Registration setting lr (--lr) must be a finite number above 0, got nan.",
+        "nan_lr_flag": "Registration setting optimiser.lr (--optimiser.lr) must be a finite number above 0, got nan.",
         "threads_zero": "--threads must be 1 or more",
         "cuda_without_cuda": "--device cuda was given, but torch sees no CUDA device on this machine; expected --device cpu or auto.",
         "negative_steps_preset": "steps must be a whole number of 0 or more, got -3.",
         "negative_scale": "scale must be positive",
         "nan_init": "finite 4x4",
         "sees_nothing": "renders nothing",
-        "render_teacher_on_features": "--render-teacher dense-sift describes rendered images",
+        "render_teacher_on_features": "--objective.render-teacher dense-sift describes rendered images",
     }[case]
     if case == "not_feature_splat":
         from nerfstudio.configs.method_configs import method_configs
@@ -491,7 +492,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
             point.xyz = [np.nan, 0.0, 0.0]
         model.write_binary(str(meta_dir / "sparse" / "0"))
     elif case == "nan_lr_flag":
-        extra = ["--lr", "nan"]
+        extra = ["--optimiser.lr", "nan"]
     elif case == "threads_zero":
         extra = ["--threads", "0"]
     elif case == "cuda_without_cuda":  # a machine without CUDA, whatever this one has
@@ -525,7 +526,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
         init = str(tmp_path / "init.json")
         Path(init).write_text(json.dumps({"matrix": (far @ np.array(json.loads(gt.read_text())["matrix"])).tolist()}))
     elif case == "render_teacher_on_features":
-        extra = ["--objective", "features", "--render-teacher", "dense-sift"]
+        extra = ["--objective.kind", "features", "--objective.render-teacher", "dense-sift"]
     out = tmp_path / "out"
     if case == "output_holds_the_meta_image":  # results go to <output-dir>/front: the meta-image itself
         out, extra = meta_dir.parent, ["--overwrite"]
@@ -534,7 +535,7 @@ def test_bad_inputs_fail_with_one_sentence_and_no_output(case, reference_config,
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     code, err = run_cli([
         "--load-config", str(config), "--meta-image", str(meta_dir), "--output-dir", str(out), "--init", init,
-        "--steps", "3", "--images-per-step", "2", *extra,
+        "--optimiser.steps", "3", "--optimiser.photos-per-step", "2", *extra,
     ], capsys)
     assert code == 1
     assert expected in err, err
@@ -590,7 +591,7 @@ def test_several_meta_images_merge_into_one_model_in_the_reference_frame(referen
     metas = [first, second]
     # 5 small steps from the truth stay near it (on this 36-52 px, 60%-occluded scene the objective's own minimum is
     # degrees away: fast-cpu from the truth ends 6.6° off), hence no refine stage either
-    args = ["--load-config", str(reference_config), "--output-dir", str(out), "--steps", "5", "--lr", "0.001", "--refine-steps", "0", "--merge-reference"]
+    args = ["--load-config", str(reference_config), "--output-dir", str(out), "--optimiser.steps", "5", "--optimiser.lr", "0.001", "--last-stage.steps", "0", "--merge-reference"]
     for meta_dir in metas:
         args += ["--meta-image", str(meta_dir), "--init", str(meta_dir / "gt_transform.json"), "--gt", str(meta_dir / "gt_transform.json")]
     code, err = run_cli(args, capsys)
@@ -728,10 +729,10 @@ def test_depth_agreement_of_the_meta_image_follows_a_wrong_scale(reference, meta
     cameras (they stay, the points move) by 1.25 or 0.8 shifts the median log ratio by about -log of the factor.
     (Its value at the truth is -0.20 on this 300-step reference, whose floaters sit in front of the surface; within
     ±0.03 on the 1500-step references of docs/measurements.md "Depth agreement".)"""
-    settings = RegistrationSettings(**{**FAST, "objective": "teacher-on-render"})
+    settings = FAST.changed(objective={"kind": "teacher-on-render"})
     objective = build_objective(reference, settings)
     truth = reference.world_to_dataparser @ ground_truth
-    near_plane = optimize.effective_near_plane(meta, truth, settings.near_plane)
+    near_plane = optimize.effective_near_plane(meta, truth, settings.objective.near_plane)
     losses = PhotoLosses(reference, prepare_photos(reference, meta, settings, objective), objective, settings, near_plane)
     indices = list(range(len(meta.photos)))
 
@@ -759,7 +760,7 @@ def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(re
 
     looks, look = [], other_minimum.look_for_other_minimum
     monkeypatch.setattr(other_minimum, "look_for_other_minimum", lambda *args, **kwargs: looks.append(look(*args, **kwargs)) or looks[-1])
-    settings = RegistrationSettings(**{**FAST, "steps": 20, "objective": "teacher-on-render"})
+    settings = FAST.changed(optimiser={"steps": 20}, objective={"kind": "teacher-on-render"})
     wrong = register(reference, meta, facing_the_other_side(ground_truth), settings)
     looks.clear()
     right = register(reference, meta, ground_truth, settings)
@@ -778,8 +779,7 @@ def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, g
     rendered = lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s)
     for module in (optimize, stages):  # the main stage's photos and the coarse stage's
         monkeypatch.setattr(module, "prepare_photos", rendered)
-    settings = RegistrationSettings(**{**FAST, "steps": 60, "lr": 0.01, "lr_final": 0.0005, "objective": "teacher-on-render", "render_scale": 4.0,
-                                       "pyramid": (2,), "pyramid_steps": 40, "hypotheses": 8, "hypothesis_scales": (0.8, 1.25)})
+    settings = FAST.changed(optimiser={"steps": 60, "lr": 0.01, "lr_final": 0.0005}, objective={"kind": "teacher-on-render", "render_scale": 4.0}, coarse_to_fine={"factors": (2,), "steps": 40}, hypotheses={"count": 8, "scales": (0.8, 1.25)})
     start = perturbed_start(meta, ground_truth, 30, 12.0, 0.1, 0.1)
     steps = []
     result = register(reference, meta, start, settings, on_step=lambda step, _: steps.append(step))
@@ -802,7 +802,7 @@ def test_fail_on_and_merged_leave_out_a_failed_verdict(reference_config, tiny_sc
     calls = []
     monkeypatch.setattr(optimize, "decide", lambda evidence: calls.append(1) or (decide(evidence) if len(calls) % 2 else Verdict("failed", ["forced by the test"], evidence)))
     for fail_on, out in (("failed", tmp_path / "out"), ("uncertain", tmp_path / "out2")):
-        args = ["--load-config", str(reference_config), "--output-dir", str(out), "--steps", "3", "--fail-on", fail_on]
+        args = ["--load-config", str(reference_config), "--output-dir", str(out), "--optimiser.steps", "3", "--fail-on", fail_on]
         for meta_dir in (first, second):
             args += ["--meta-image", str(meta_dir), "--init", str(meta_dir / "gt_transform.json")]
         capsys.readouterr()
@@ -846,7 +846,7 @@ def projected_keypoints(reference, meta, truth: Sim3, count: int, outlier_fracti
 def test_keypoint_term_vanishes_at_the_truth_and_grows_away_from_it(reference, meta, ground_truth):
     """Exact keypoints (through the photos' own distortion) reproject to 0 cells at the truth; a 1° rotation or a
     2% scale moves them by about what the camera geometry says; a photo without keypoints adds nothing."""
-    from sg_nerfstudio.registration.keypoints import KeypointTerm
+    from sg_nerfstudio.registration.anchored_start.anchors import KeypointTerm
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.0, seed=0)
     term = KeypointTerm(meta, anchors, reference.world_to_dataparser, grid_size=32, weight=1.0)
@@ -871,13 +871,13 @@ def test_keypoint_anchors_hold_the_answer_where_the_dense_minimum_is_off(referen
 
     looks = []
     monkeypatch.setattr(other_minimum, "look_for_other_minimum", lambda *args, **kwargs: looks.append(args))
-    settings = RegistrationSettings(**{**FAST, "steps": 60, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render", keypoint_weight=3.0, update_centre="look-at")
+    settings = FAST.changed(optimiser={"steps": 60, "lr": 0.01, "lr_final": 0.0005, "update_centre": "look-at"}, objective={"kind": "teacher-on-render"}, anchors={"weight": 3.0})
     biased = perturbed_start(meta, ground_truth, 5, 1.5, 0.03, 0.02)
     photos = rendered_targets(reference, meta, prepare_photos(reference, meta, settings), biased, settings)
     start = perturbed_start(meta, ground_truth, 3, 5.0, 0.1, 0.1)
     anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.2, seed=1)
     poses = meta.poses
-    dense_only = register(reference, meta, start, replace(settings, keypoint_weight=0.0), photos=photos, keypoints=anchors)
+    dense_only = register(reference, meta, start, settings.changed(anchors={"weight": 0.0}), photos=photos, keypoints=anchors)
     assert pose_errors(poses, dense_only.transform, ground_truth).rotation_deg > 1.0
     looked = len(looks)
     anchored = register(reference, meta, start, settings, photos=photos, keypoints=anchors)
@@ -894,7 +894,7 @@ def test_cli_keypoint_anchors_off_when_the_reference_gives_no_sift_cloud(referen
     capsys.readouterr()
     code = register_main([
         "--load-config", str(reference_config), "--meta-image", str(meta_dir), "--output-dir", str(out),
-        "--init", str(meta_dir / "gt_transform.json"), "--steps", "3", "--keypoint-weight", "1",
+        "--init", str(meta_dir / "gt_transform.json"), "--optimiser.steps", "3", "--anchors.weight", "1",
         "--init-cache-dir", str(tmp_path / "sift"),
     ])
     printed = capsys.readouterr()
@@ -910,7 +910,7 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
     0.5° where the dense objective alone, from the same start, does not reach 5°. The pre-aligned registration runs
     the short `prealigned_*` schedule, the dense one without anchors the full `steps`; with `prealigned_steps` 0 it is
     the keypoint fit alone, and its outputs are written (a loss curve without steps)."""
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring
     from sg_nerfstudio.registration.outputs import write_outputs
 
     anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.2, seed=2)
@@ -918,16 +918,14 @@ def test_keypoint_prealignment_brings_a_30_degree_start_home(reference, meta, gr
     anchoring = Anchoring(meta, anchors, Sim3.identity(), 1.0)  # in the world frame: no dataparser transform needed
     prealigned = anchoring.prealign(start, meta.look_at_under(start), grid_size=32, steps=1000)
     assert pose_errors(meta.poses, prealigned, ground_truth).rotation_deg < 0.05
-    settings = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render",
-                                    update_centre="look-at", keypoint_weight=3.0, keypoint_prealign_steps=1000,
-                                    prealigned_steps=10, prealigned_lr=0.002)
+    settings = FAST.changed(optimiser={"steps": 30, "lr": 0.01, "lr_final": 0.0005, "update_centre": "look-at"}, objective={"kind": "teacher-on-render"}, anchors={"weight": 3.0, "prealign_steps": 1000, "main_steps": 10, "main_lr": 0.002})
     anchored = register(reference, meta, start, settings, keypoints=anchors)
     assert pose_errors(meta.poses, anchored.transform, ground_truth).rotation_deg < 0.5
     assert anchored.steps == optimize.total_steps(settings, anchored=True) == 10
-    dense_only = register(reference, meta, start, replace(settings, keypoint_weight=0.0), keypoints=anchors)
+    dense_only = register(reference, meta, start, settings.changed(anchors={"weight": 0.0}), keypoints=anchors)
     assert pose_errors(meta.poses, dense_only.transform, ground_truth).rotation_deg > 5.0
     assert dense_only.steps == optimize.total_steps(settings) == 30
-    keypoints_only = register(reference, meta, start, replace(settings, prealigned_steps=0), keypoints=anchors)
+    keypoints_only = register(reference, meta, start, settings.changed(anchors={"main_steps": 0}), keypoints=anchors)
     assert keypoints_only.steps == 0 and pose_errors(meta.poses, keypoints_only.transform, ground_truth).rotation_deg < 0.05
     written = write_outputs(tmp_path / "keypoints-only", reference, meta, keypoints_only)
     assert (written / "report" / "loss_curve.png").stat().st_size > 0 and (written / "transform.json").exists()
@@ -942,9 +940,7 @@ def test_anchors_that_hold_make_a_shallow_minimum_registered_unless_the_photos_d
     The tiny reference's rise at the truth depends on its draw: under 5% (REGISTERED_SHARPNESS) on the pinned code
     paths, 6.2% with torch's non-vector kernels (2026-12-06). Where it is not shallow by the rule, the rule is read with
     its threshold above the rise, so the case tested is the same on every draw."""
-    settings = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render",
-                                    update_centre="look-at", keypoint_weight=10.0, keypoint_prealign_steps=1000,
-                                    prealigned_steps=20, prealigned_lr=0.003)
+    settings = FAST.changed(optimiser={"steps": 30, "lr": 0.01, "lr_final": 0.0005, "update_centre": "look-at"}, objective={"kind": "teacher-on-render"}, anchors={"weight": 10.0, "prealign_steps": 1000, "main_steps": 20, "main_lr": 0.003})
     right = register(reference, meta, ground_truth, settings, keypoints=projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=3))
     evidence = right.verdict.evidence
     if evidence.sharpness >= verdict.REGISTERED_SHARPNESS:
@@ -979,7 +975,7 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     within 1% of 1/1.05 (the rest is the SfM's own uncertainty, held at the keypoints' noise: 0.5 px on these 48-px
     photos) and puts the cameras back; a registration with it renders and records that scale (transform.json, the
     aligned model's cameras)."""
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring
     from sg_nerfstudio.registration.outputs import write_outputs
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.0, seed=3)
@@ -998,8 +994,7 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     assert fit.refused == "" and dropped.refused.startswith("a focal length x") and dropped.refused.endswith("(beyond 20%)")
     assert float(dropped.refused.split("x")[1].split()[0]) < 1 / 1.2  # the fitted scale, toward the true 1 / 1.5
 
-    settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0,
-                                    keypoint_prealign_steps=1000, prealigned_steps=2, refine_focal=True)
+    settings = FAST.changed(optimiser={"steps": 3}, objective={"kind": "teacher-on-render"}, anchors={"weight": 1.0, "prealign_steps": 1000, "main_steps": 2}, camera_fit={"focal": True})
     result = register(reference, wrong, ground_truth, settings, keypoints=anchors)
     assert result.focal_scales.keys() == scales.keys() and np.allclose(list(result.focal_scales.values()), 1 / 1.05, atol=0.01)
     target = write_outputs(tmp_path / "out", reference, wrong, result)
@@ -1009,7 +1004,7 @@ def test_focal_refinement_recovers_a_wrong_sfm_focal_length(reference, meta, gro
     for image in aligned.images.values():
         source = next(photo for photo in wrong.photos if photo.name == image.name)
         assert aligned.cameras[image.camera_id].mean_focal_length() == pytest.approx(source.camera.mean_focal_length() * result.focal_scales[image.name])
-    assert register(reference, wrong, ground_truth, replace(settings, refine_focal=False), keypoints=anchors).focal_scales == {}
+    assert register(reference, wrong, ground_truth, settings.changed(camera_fit={"focal": False}), keypoints=anchors).focal_scales == {}
     # a refused fit is verdict evidence: the meta-image's own cameras disagree with the anchors
     doubted = register(reference, with_wrong_focal_lengths(meta, 1.5), ground_truth, settings, keypoints=anchors)
     assert doubted.focal_scales == {} and doubted.verdict.evidence.camera_fit_refused.startswith("a focal length")
@@ -1026,7 +1021,7 @@ def test_distortion_refinement_recovers_a_wrong_sfm_radial_coefficient(reference
     registration with it (dataparser frame, where the same fit stops sooner on these tiny photos) moves every k1 closer
     to the truth and records it per photo (transform.json) and in the aligned model's cameras."""
     from sg_nerfstudio.geometry.meta_image import radial_k1_index
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring
     from sg_nerfstudio.registration.outputs import write_outputs
 
     truth_k1 = {int(p.camera.camera_id): float(p.camera.params[radial_k1_index(p.camera)]) for p in meta.photos if radial_k1_index(p.camera) is not None}
@@ -1044,8 +1039,7 @@ def test_distortion_refinement_recovers_a_wrong_sfm_radial_coefficient(reference
     before, after = (pose_errors(meta.poses, transform, ground_truth) for transform in (prealigned, fit.transform))
     assert after.rotation_deg <= before.rotation_deg + 1e-3 and after.translation <= before.translation + 1e-4
 
-    settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0,
-                                    keypoint_prealign_steps=1000, prealigned_steps=2, refine_distortion=True)
+    settings = FAST.changed(optimiser={"steps": 3}, objective={"kind": "teacher-on-render"}, anchors={"weight": 1.0, "prealign_steps": 1000, "main_steps": 2}, camera_fit={"distortion": True})
     result = register(reference, wrong, ground_truth, settings, keypoints=anchors)
     assert sorted(result.radial_k1) == sorted(truth_k1), result.radial_k1
     assert all(abs(result.radial_k1[c] - truth_k1[c]) < 0.095 for c in truth_k1), (result.radial_k1, truth_k1)  # closer than 0.1 (0.087 on an AMD EPYC)
@@ -1055,7 +1049,7 @@ def test_distortion_refinement_recovers_a_wrong_sfm_radial_coefficient(reference
     aligned = pycolmap.Reconstruction(str(target / "aligned"))
     for camera_id, k1 in result.radial_k1.items():
         assert aligned.cameras[camera_id].params[radial_k1_index(aligned.cameras[camera_id])] == pytest.approx(k1)
-    assert register(reference, wrong, ground_truth, replace(settings, refine_distortion=False), keypoints=anchors).radial_k1 == {}
+    assert register(reference, wrong, ground_truth, settings.changed(camera_fit={"distortion": False}), keypoints=anchors).radial_k1 == {}
 
 
 def with_one_photo_turned(meta, degrees: float):
@@ -1078,7 +1072,7 @@ def test_pose_refinement_takes_one_wrongly_turned_photo_out_of_the_sim3(referenc
     camera within a tenth of a degree of the truth and the Sim(3) nearer the ground truth; a registration with it
     records each photo's correction in transform.json."""
     from sg_nerfstudio.geometry.alignment import align_cameras, camera_residuals
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring
     from sg_nerfstudio.registration.outputs import write_outputs
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.1, seed=4)
@@ -1098,9 +1092,7 @@ def test_pose_refinement_takes_one_wrongly_turned_photo_out_of_the_sim3(referenc
     after = pose_errors(wrong.poses, fit.transform @ shift, truth).rotation_deg
     assert after < before / 2
 
-    settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0,
-                                    keypoint_prealign_steps=1000, prealigned_steps=2, prealigned_lr=1e-5,
-                                    refine_photo_poses=True, photo_pose_prior_scale=10.0)  # two dense steps too small to move the result
+    settings = FAST.changed(optimiser={"steps": 3}, objective={"kind": "teacher-on-render"}, anchors={"weight": 1.0, "prealign_steps": 1000, "main_steps": 2, "main_lr": 1e-5}, camera_fit={"photo_poses": True, "pose_prior_scale": 10.0})  # two dense steps too small to move the result
     result = register(reference, wrong, ground_truth, settings, keypoints=anchors)
     corrections = result.pose_corrections
     assert sorted(corrections) == sorted(fit.poses) and corrections[meta.photos[0].name]["rotation_deg"] > 0.5
@@ -1108,7 +1100,7 @@ def test_pose_refinement_takes_one_wrongly_turned_photo_out_of_the_sim3(referenc
     target = write_outputs(tmp_path / "out", reference, wrong, result)
     recorded = {photo["name"]: photo["pose_correction"] for photo in json.loads((target / "transform.json").read_text())["photos"]}
     assert recorded == corrections
-    assert register(reference, wrong, ground_truth, replace(settings, refine_photo_poses=False), keypoints=anchors).pose_corrections == {}
+    assert register(reference, wrong, ground_truth, settings.changed(camera_fit={"photo_poses": False}), keypoints=anchors).pose_corrections == {}
 
 
 def test_levenberg_marquardt_reaches_the_robust_minimum_that_lbfgs_approaches():
@@ -1116,7 +1108,7 @@ def test_levenberg_marquardt_reaches_the_robust_minimum_that_lbfgs_approaches():
     keypoint term's form) and one quadratic prior: it stops converged within 30 iterations where a Newton step has less
     than 1e-8 left to go, at the same point from starts 1e-9 apart, lower than the truth (the outliers move the optimum a little)
     and than 200 L-BFGS iterations reach."""
-    from sg_nerfstudio.registration.least_squares import RobustResiduals, levenberg_marquardt
+    from sg_nerfstudio.registration.anchored_start.least_squares import RobustResiduals, levenberg_marquardt
 
     rng = np.random.default_rng(0)
     points = torch.from_numpy(rng.uniform(-1, 1, (200, 2)))
@@ -1182,7 +1174,7 @@ def test_the_camera_fit_does_not_depend_on_the_photos_resolution(reference, meta
     scales, k1 and poses whether its photos and keypoints are 48 or 96 px (2e-9 apart; with the focal and k1 priors held
     at 1 px, as before 57db2fd, the focal scales were 0.0014 and k1 0.014 apart)."""
     from sg_nerfstudio.geometry.meta_image import radial_k1_index
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.05, seed=4)
     truth_k1 = {int(p.camera.camera_id): float(p.camera.params[radial_k1_index(p.camera)]) for p in meta.photos}
@@ -1205,8 +1197,8 @@ def test_a_focal_change_widens_the_centre_shift_a_photo_may_take():
     """A photo whose SfM focal length was some percent wrong stood as many percent too near or far from a facade: the
     plausibility limit lets the camera fit move it by its depth times the focal change on top of MAX_POSE_CHANGE_DEG;
     the same shift without a focal change, or a turn beyond the limit, is refused."""
-    from sg_nerfstudio.registration.camera_fit import MAX_POSE_CHANGE_DEG, implausibility
-    from sg_nerfstudio.registration.keypoints import FreeCameras
+    from sg_nerfstudio.registration.anchored_start.camera_fit import MAX_POSE_CHANGE_DEG, implausibility
+    from sg_nerfstudio.registration.anchored_start.anchors import FreeCameras
 
     depth, sigma = 10.0, np.radians(0.5)
     pose_sigma = torch.tensor([[sigma] * 3 + [depth * sigma] * 3], dtype=torch.float64)
@@ -1231,10 +1223,10 @@ def test_camera_fit_ends_where_the_priors_last_digits_do_not_matter(reference, m
     step from the result has less than 1e-6 left to go (the L-BFGS it replaced: 3.2 after 20 iterations; unconverged
     after 1000 on a real 3-photo meta-image, whose fit then moved by 0.2% of a focal length and across the
     plausibility limit from run to run)."""
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring
 
-    from sg_nerfstudio.registration.camera_fit import fit_jointly, freedom, intrinsics_priors, rotation_priors
-    from sg_nerfstudio.registration.keypoints import FIT_KERNEL_FRACTION, FreeCameras
+    from sg_nerfstudio.registration.anchored_start.camera_fit import fit_jointly, freedom, intrinsics_priors, rotation_priors
+    from sg_nerfstudio.registration.anchored_start.anchors import FIT_KERNEL_FRACTION, FreeCameras
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.1, seed=7)
     wrong = with_one_photo_turned(meta, 1.0)
@@ -1270,8 +1262,8 @@ def test_the_camera_adjustment_moves_every_photo_with_its_own_tracks(reference, 
     and a camera model with more distortion terms than k1 are left to the prior fit. A registration with it records a
     correction for every photo."""
     from sg_nerfstudio.geometry.alignment import camera_residuals
-    from sg_nerfstudio.registration.anchored_adjustment import adjustable
-    from sg_nerfstudio.registration.keypoints import Anchoring
+    from sg_nerfstudio.registration.anchored_start.bundle_adjustment import adjustable
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring
 
     turned = meta.photos[0].name
     anchors = [k for k in projected_keypoints(reference, meta, ground_truth, 60, 0.1, seed=4) if k.name != turned]
@@ -1303,8 +1295,7 @@ def test_the_camera_adjustment_moves_every_photo_with_its_own_tracks(reference, 
     next(r for r in rig.rigs.values() if r.ref_sensor_id.id == first).add_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, second), pycolmap.Rigid3d())
     assert not adjustable(replace(meta, reconstruction=rig))
 
-    settings = RegistrationSettings(**{**FAST, "steps": 3}, objective="teacher-on-render", keypoint_weight=1.0, keypoint_prealign_steps=1000,
-                                    prealigned_steps=2, prealigned_lr=1e-5, refine_focal=True, refine_photo_poses=True, camera_fit="adjustment")
+    settings = FAST.changed(optimiser={"steps": 3}, objective={"kind": "teacher-on-render"}, anchors={"weight": 1.0, "prealign_steps": 1000, "main_steps": 2, "main_lr": 1e-5}, camera_fit={"focal": True, "photo_poses": True, "solver": "adjustment"})
     result = register(reference, wrong, ground_truth, settings, keypoints=anchors)
     assert sorted(result.pose_corrections) == sorted(photo.name for photo in meta.photos)
     assert result.pose_corrections[turned]["rotation_deg"] > 0.5
@@ -1315,7 +1306,7 @@ def test_stages_after_the_pose_fit_keep_its_optimum(reference, meta, ground_trut
     with that kernel too: minimised over the Sim(3) alone from where the fit left it, their term stays there, where the
     wider KERNEL_CELLS lets a sixth of the keypoints that sit a pixel off (what RANSAC lets through) pull it away (on a real
     3-photo meta-image, Sceaux 100_7101-100_7104, that moved the result from 0.10° to 0.28° from the truth)."""
-    from sg_nerfstudio.registration.keypoints import Anchoring, minimise_keypoint_term
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring, minimise_keypoint_term
 
     anchors = projected_keypoints(reference, meta, ground_truth, 60, 0.0, seed=5)
     rng = np.random.default_rng(6)
@@ -1364,8 +1355,8 @@ def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(refere
     runs from the main stage's result and lowers the refine teacher's objective there; the step count includes it;
     `refine_anchored: false` leaves it out where keypoint anchors held the pose; with another main objective the refine
     stage still describes renders with its teacher."""
-    base = RegistrationSettings(**{**FAST, "steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective="teacher-on-render")
-    settings = replace(base, refine_steps=15, refine_teacher="dense-sift", refine_lr=0.003)
+    base = FAST.changed(optimiser={"steps": 30, "lr": 0.01, "lr_final": 0.0005}, objective={"kind": "teacher-on-render"})
+    settings = base.changed(last_stage={"steps": 15, "teacher": "dense-sift", "lr": 0.003})
     start = perturbed_start(meta, ground_truth, 1, 3.0, 0.05, 0.05)
     main_only = register(reference, meta, start, base)
     refined = register(reference, meta, start, settings)
@@ -1382,12 +1373,12 @@ def test_refine_stage_continues_from_the_main_result_with_its_own_teacher(refere
     assert at(refined.transform) < at(main_only.transform)
 
     anchors = projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=2)
-    anchored = replace(settings, update_centre="look-at", keypoint_weight=1.0, refine_anchored=False)
+    anchored = settings.changed(optimiser={"update_centre": "look-at"}, anchors={"weight": 1.0}, last_stage={"with_anchors": False})
     assert optimize.total_steps(anchored, anchored=True) == 30 and optimize.total_steps(anchored) == 45
     assert {row["stage"] for row in register(reference, meta, start, anchored, keypoints=anchors).history} == {"main"}
     for objective in ("features", "photometric"):  # the refine teacher describes renders, whatever the main objective
-        own = refine_settings(replace(settings, objective=objective, teacher_input_size=64))
-        assert (own.objective, own.render_teacher, own.teacher_input_size) == ("teacher-on-render", "dense-sift", None)
+        own = refine_settings(settings.changed(objective={"kind": objective, "teacher_input_size": 64}))
+        assert (own.objective.kind, own.objective.render_teacher, own.objective.teacher_input_size) == ("teacher-on-render", "dense-sift", None)
 
 
 def test_a_reference_trained_with_relative_paths_loads_from_any_directory(trained, tiny_scene, tmp_path, monkeypatch):
@@ -1461,7 +1452,7 @@ def test_the_scale_one_anchored_photo_leaves_free_is_found_about_its_camera(refe
     by nothing, the search scales about that camera (which stays where it was) to the factor the other photos prefer;
     the anchors of two photos apart move by pixels, fix the scale, and nothing changes."""
     from sg_nerfstudio.geometry.alignment import camera_centres
-    from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm, anchors_fix_scale
+    from sg_nerfstudio.registration.anchored_start.anchors import Anchoring, KeypointTerm, anchors_fix_scale
 
     first = meta.photos[0]
     centre = ground_truth.apply(camera_centres(first.cam_from_world[None])[0])
@@ -1475,7 +1466,7 @@ def test_the_scale_one_anchored_photo_leaves_free_is_found_about_its_camera(refe
     assert motion > 0.1 and error < 1e-3 and anchors_fix_scale(motion, error)
 
     anchors = lambda keypoints: Anchoring(meta, keypoints, Sim3.identity(), 1.0)  # the stand-in objective works in the world frame
-    settings = RegistrationSettings(robust="none")
+    settings = RegistrationSettings().changed(robust={"rule": "none"})
     found, record = scale_search.scale_the_anchors_leave_free(_CentreLosses(meta, ground_truth), anchors(one), meta, start, settings)
     assert record["photos"] == [first.name] and abs(record["factor"] - 1 / 1.35) < 0.02
     assert np.allclose(found.apply(camera_centres(first.cam_from_world[None])), centre[None], atol=1e-9)  # the anchored camera stays
@@ -1494,8 +1485,7 @@ def test_a_registration_with_one_anchored_photo_searches_the_scale_it_leaves_fre
     photo = next(p for p in meta.photos if p.name == anchors[0].name)
     centre = ground_truth.apply(camera_centres(photo.cam_from_world[None])[0])
     start = Sim3.from_parts(1.3, np.eye(3), np.zeros(3)).about(centre) @ ground_truth
-    settings = RegistrationSettings(**{**FAST, "steps": 10}, objective="teacher-on-render", keypoint_weight=3.0,
-                                    keypoint_prealign_steps=200, prealigned_steps=0)
+    settings = FAST.changed(optimiser={"steps": 10}, objective={"kind": "teacher-on-render"}, anchors={"weight": 3.0, "prealign_steps": 200, "main_steps": 0})
     result = register(reference, meta, start, settings, keypoints=anchors)
     assert result.scale_search is not None and result.scale_search["photos"] == [photo.name]
     assert result.verdict.evidence.scale_rise is not None and result.verdict.evidence.scale_probe > 0
@@ -1520,7 +1510,7 @@ def test_the_verdicts_probes_render_the_model_culled_at_the_result(teacher_input
 
     monkeypatch.setattr(optimize, "gather_evidence", spying)
     start = perturbed_start(meta, ground_truth, 7, 2.0, 0.02, 0.02)
-    settings = RegistrationSettings(**{**FAST, "steps": 3, "objective": "teacher-on-render", "teacher_input_size": teacher_input_size})
+    settings = FAST.changed(optimiser={"steps": 3}, objective={"kind": "teacher-on-render", "teacher_input_size": teacher_input_size})
     register(reference, meta, start, settings)
     if held:
         assert seen["after"] == seen["before"]
@@ -1533,7 +1523,7 @@ def test_a_model_held_at_the_result_renders_every_probe_as_the_whole_model_does(
     """What `held_for_probes` relies on: the model culled at the result renders the verdict's 12 probes (here the tiny
     reference's 16-cell grid, probes of 3-4°, the largest the hold takes) as the whole model does (level of detail off:
     this checks the cull alone)."""
-    settings = RegistrationSettings(**FAST, objective="teacher-on-render", level_of_detail=0.0)
+    settings = FAST.changed(objective={"kind": "teacher-on-render"}, level_of_detail={"voxel_pixels": 0.0})
     objective = build_objective(reference, settings)
     photos = prepare_photos(reference, meta, settings, objective)
     culled = PhotoLosses(reference, photos, objective, settings, 0.01)

@@ -63,7 +63,7 @@ def registrations(reference_config, tiny_scene, gt_path, tmp_path_factory) -> Pa
     out = tmp_path_factory.mktemp("viewer") / "registrations"
     code = register_main([
         "--load-config", str(reference_config), "--meta-image", str(tiny_scene / "meta" / "front"), "--output-dir", str(out),
-        "--gt", str(gt_path), "--steps", "2", "--images-per-step", "2",
+        "--gt", str(gt_path), "--optimiser.steps", "2", "--optimiser.photos-per-step", "2",
     ])
     assert code == 0
     return out

@@ -80,7 +80,7 @@ def photo_ratios(scene: BenchmarkScene, config: Path, settings: RegistrationSett
         meta = load_meta_image(bench_meta.directory)
         photos = prepare_photos(reference, meta, settings, objective)
         truth_ns = reference.world_to_dataparser @ bench_meta.ground_truth
-        losses = PhotoLosses(reference, photos, objective, settings, effective_near_plane(meta, truth_ns, settings.near_plane))
+        losses = PhotoLosses(reference, photos, objective, settings, effective_near_plane(meta, truth_ns, settings.objective.near_plane))
         for offset in offsets:
             rng = np.random.default_rng([seed, int(round(offset * 10))])
             start = perturbed(bench_meta.ground_truth, meta.centres, rng, offset, offset / 30 * 0.5, offset / 30 * 0.3) if offset else bench_meta.ground_truth

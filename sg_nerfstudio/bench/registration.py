@@ -92,7 +92,7 @@ def trial(
     """One registration from the truth perturbed by `start_noise` (seeded); with `keypoints` (the anchors), as
     `ns-register-meta` registers, else the dense objective alone."""
     start = perturbed(truth, meta.centres, np.random.default_rng(seed), *start_noise)
-    result = register(reference, meta, start, replace(settings, seed=seed), photos=photos, keypoints=keypoints)
+    result = register(reference, meta, start, settings.changed(seed=seed), photos=photos, keypoints=keypoints)
     poses = meta.poses
     before, after = pose_errors(poses, start, truth), pose_errors(poses, result.transform, truth)
     return {
@@ -141,7 +141,7 @@ def ablations(reference, scene, settings, trials, rows_to_run, start_noise, cons
         table.add_column(column, justify="right")
     results = {}
     for name in rows_to_run:
-        variant = replace(settings, **ABLATIONS[name])
+        variant = settings.changed(**ABLATIONS[name])
         rows = []
         for meta, truth in metas:
             photos = prepare_photos(reference, meta, variant)

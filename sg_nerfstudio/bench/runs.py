@@ -49,15 +49,15 @@ NOISE_PER_DEGREE = (1.0 / 60.0, 0.01)
 """Translation (scene units) and scale fraction per degree of a `noise-<deg>` start (30°: 0.5 and 30%)."""
 ABLATIONS = {
     "full": {},
-    "decoded-features": {"objective": "features"},
-    "photometric": {"objective": "photometric"},
-    "l2": {"loss": "l2"},
-    "none": {"robust": "none"},
-    "outlier-lts": {"robust": "outlier-lts"},
-    "fixed-lts": {"robust": "fixed-lts"},
-    "irls": {"robust": "irls"},
+    "decoded-features": {"objective": {"kind": "features"}},
+    "photometric": {"objective": {"kind": "photometric"}},
+    "l2": {"objective": {"loss": "l2"}},
+    "none": {"robust": {"rule": "none"}},
+    "outlier-lts": {"robust": {"rule": "outlier-lts"}},
+    "fixed-lts": {"robust": {"rule": "fixed-lts"}},
+    "irls": {"robust": {"rule": "irls"}},
 }
-"""Ablation rows: registration settings changed from the preset."""
+"""Ablation rows: registration settings changed from the preset (`RegistrationSettings.changed`)."""
 
 
 @dataclass
@@ -193,7 +193,7 @@ class SceneRunner:
             record["before"] = summary(pose_errors(poses, start, meta.ground_truth))
             record["start_transform"] = start.as_record()
             base = self.options.alternatives[spec.mode] if spec.mode else self.options.settings
-            settings = replace(base, seed=seed, **spec.overrides)
+            settings = base.changed(seed=seed, **spec.overrides)
             keypoints = self.keypoints(subject, settings)
             record["anchored_photos"] = len(keypoints)
             total = total_steps(settings, anchored=bool(keypoints))
@@ -214,7 +214,7 @@ class SceneRunner:
         """The keypoint anchors of a run whose settings weigh them: the same for every start of a meta-image
         (the correspondences do not depend on it), of the `anchored_photos` photos with the most correspondences when
         that is set; none when the reference's SIFT cloud cannot be built."""
-        if settings.keypoint_weight <= 0 or self.reference_unusable is not None:
+        if settings.anchors.weight <= 0 or self.reference_unusable is not None:
             return []
         try:
             keypoints = self.initialiser.keypoints(subject)

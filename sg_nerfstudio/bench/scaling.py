@@ -48,7 +48,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -172,11 +172,11 @@ def measure(args: ChildArgs) -> dict:
 
     rasterization.FROZEN_KERNELS = args.frozen_kernels
     threads = set_threads(args.threads)
-    settings = replace(load_preset(args.config), seed=args.seed)
+    settings = load_preset(args.config).changed(seed=args.seed)
     if args.level_of_detail is not None:
-        settings = replace(settings, level_of_detail=args.level_of_detail)
+        settings = settings.changed(level_of_detail={"voxel_pixels": args.level_of_detail})
     if args.render_budget is not None:
-        settings = replace(settings, render_budget=args.render_budget)
+        settings = settings.changed(level_of_detail={"render_budget": args.render_budget})
     started = time.perf_counter()
     reference = load_reference(args.load_config, device=resolve_device(args.device))
     loaded = time.perf_counter() - started
@@ -186,7 +186,7 @@ def measure(args: ChildArgs) -> dict:
     objective = build_objective(reference, settings)
     photos = prepare_photos(reference, meta, settings, objective)
     start_ns = reference.world_to_dataparser @ start
-    losses = PhotoLosses(reference, photos, objective, settings, effective_near_plane(meta, start_ns, settings.near_plane))
+    losses = PhotoLosses(reference, photos, objective, settings, effective_near_plane(meta, start_ns, settings.objective.near_plane))
     centre = torch.from_numpy(meta.centroid_under(start_ns))
     everything = list(range(len(photos)))
 
@@ -205,8 +205,8 @@ def measure(args: ChildArgs) -> dict:
     step()  # warm-up: first calls of the compiled kernels
     times = [step() for _ in range(args.steps)]
     record = {
-        "gaussians": reference.count, "rendered": losses.visible.subset.count, "level_of_detail": settings.level_of_detail,
-        "render_budget": settings.render_budget, "voxel_pixels": losses.visible.voxel_pixels,
+        "gaussians": reference.count, "rendered": losses.visible.subset.count, "level_of_detail": settings.level_of_detail.voxel_pixels,
+        "render_budget": settings.level_of_detail.render_budget, "voxel_pixels": losses.visible.voxel_pixels,
         "frozen_kernels": args.frozen_kernels,
         "threads": threads, "load_s": loaded, "prepare_s": prepared, "step_s": statistics.median(times),
         "photos": len(photos), "render_size": [photos[0].width, photos[0].height],

@@ -18,7 +18,7 @@ the full-resolution pooling's backward was 70% of the module's time.
 
 Measured as registration's render teacher (docs/measurements.md, "Dense SIFT as the render teacher"): with the keypoint anchors
 it ends slightly closer on the real-photo scenes and the same on synthetic ones; the dense objective alone has a
-much narrower basin with it. The presets keep the offline descriptor; `--render-teacher dense-sift` selects it.
+much narrower basin with it. The presets keep the offline descriptor; `--objective.render-teacher dense-sift` selects it.
 """
 
 from __future__ import annotations

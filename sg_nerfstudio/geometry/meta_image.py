@@ -40,7 +40,7 @@ class Photo:
         camera: its pycolmap camera (any model, pixel convention: centre of the top-left pixel at 0.5).
         cam_from_world: [3, 4] world-to-camera (OpenCV) in the meta-image frame.
         points_camera: [M, 3] the sparse points it observes, in its camera frame (OpenCV, meta units).
-        focal_scale: the registration's correction of the SfM focal length (`RegistrationSettings.refine_focal`):
+        focal_scale: the registration's correction of the SfM focal length (`CameraFitSettings.focal`):
             the reference is rendered with the undistorted image's focal lengths times this (1: as SfM found them).
     """
 
@@ -141,14 +141,14 @@ class MetaImage:
 
     def with_poses(self, poses: dict[str, Array]) -> "MetaImage":
         """A copy whose photos named in `poses` have that [3, 4] cam_from_world (meta frame; the registration's
-        per-photo pose correction, `RegistrationSettings.refine_photo_poses`); the sparse points keep the depths and
+        per-photo pose correction, `CameraFitSettings.photo_poses`); the sparse points keep the depths and
         pixels the SfM observed."""
         photos = [replace(p, cam_from_world=np.asarray(poses[p.name], dtype=np.float64)) if p.name in poses else p for p in self.photos]
         return replace(self, photos=photos)
 
     def with_radial_distortion(self, k1: dict[int, float]) -> "MetaImage":
         """A copy whose COLMAP cameras named in `k1` (camera id -> value) have that first radial coefficient
-        (`RegistrationSettings.refine_distortion`); the model is copied, the photos get the new cameras."""
+        (`CameraFitSettings.distortion`); the model is copied, the photos get the new cameras."""
         if not k1:
             return self
         reconstruction = pycolmap.Reconstruction(self.reconstruction)
@@ -162,7 +162,7 @@ class MetaImage:
 
     def camera_focal_scales(self) -> dict[int, float]:
         """COLMAP camera id -> the `focal_scale` of its photos, for the cameras whose photos were rescaled (photos
-        that share a camera are rescaled together: `registration.camera_fit.fit_cameras`)."""
+        that share a camera are rescaled together: `registration.anchored_start.camera_fit.fit_cameras`)."""
         return {int(p.camera.camera_id): p.focal_scale for p in self.photos if p.focal_scale != 1.0}
 
     def centroid_under(self, transform: Sim3) -> Array:
@@ -184,7 +184,7 @@ class MetaImage:
 
 RADIAL_MODELS = {"SIMPLE_RADIAL", "RADIAL", "OPENCV"}
 """COLMAP camera models whose first extra parameter is the first radial distortion coefficient k1 (x_d = x (1 + k1 r^2 +
-...)); the registration may refine it (`RegistrationSettings.refine_distortion`)."""
+...)); the registration may refine it (`CameraFitSettings.distortion`)."""
 
 
 def radial_k1_index(camera: pycolmap.Camera) -> Optional[int]:

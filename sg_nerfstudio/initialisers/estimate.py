@@ -190,7 +190,7 @@ def similarity_from_one_photo(cam_from_meta: Array, cam_from_reference: Array, m
     centre from the two poses, scale from the median depth of what the photo sees in each (`meta_depth`: its own sparse
     points in the meta-image; `reference_depth`: its inlier reference points in the registered camera). One camera fixes
     6 of the 7 degrees of freedom; the depth ratio is a first guess of the scale about it, for the registration to search
-    (`registration.scale_search.scale_the_anchors_leave_free`). None without positive depths."""
+    (`registration.anchored_start.scale_search.scale_the_anchors_leave_free`). None without positive depths."""
     if not (np.isfinite(meta_depth) and np.isfinite(reference_depth) and meta_depth > 0 and reference_depth > 0):
         return None
     scale = reference_depth / meta_depth

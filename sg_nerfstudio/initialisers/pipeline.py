@@ -248,7 +248,7 @@ class Initialiser:
 
     def keypoints(self, meta: MetaImage) -> list[PhotoKeypoints]:
         """Per photo that registers to the reference on its own (`register_photo`), its RANSAC-inlier 2D-3D
-        correspondences: the anchors of `RegistrationSettings.keypoint_weight` (registration/keypoints.py). A photo
+        correspondences: the anchors of `AnchorSettings.weight` (registration/anchored_start/anchors.py). A photo
         too weak to register alone (few or blurred matches, a night photo, occluders) is verified with the others
         instead: its inliers under the meta-image's generalized pose (`generalized_similarity`, the photos as one
         rig), at least RIG_ANCHOR_MIN_INLIERS of them. Photos verified neither way are left out. Raises InputError

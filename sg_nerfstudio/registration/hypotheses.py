@@ -5,7 +5,7 @@ the main stage's objective scores lowest wins (`best_hypothesis`). Transforms ar
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 import torch
@@ -13,18 +13,20 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
-from sg_nerfstudio.registration.keypoints import Anchoring
 from sg_nerfstudio.registration.objectives import PhotoLosses
 from sg_nerfstudio.registration.schedules import History
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.registration.stages import Stage, objective_with_anchors, optimise_stage
+
+if TYPE_CHECKING:  # the anchored start builds on the stages; they only take its anchors
+    from sg_nerfstudio.registration.anchored_start import Anchoring
 
 
 def best_hypothesis(
     stage: Stage, judge: PhotoLosses, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
     on_step: Optional[Callable[[int, Sim3], None]], anchor: Optional[Anchoring] = None,
 ) -> tuple[Sim3, list[dict], int]:
-    """Several starts around `start_ns`: the start and `settings.hypotheses` rotations of `hypothesis_deg` about
+    """Several starts around `start_ns`: the start and `settings.hypotheses.count` rotations of `hypotheses.rotation_deg` about
     axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales`
     factor. The `hypotheses_kept` with the lowest robust objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
     stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
@@ -32,12 +34,12 @@ def best_hypothesis(
     Scores are the robust objective plus, with an `anchor`, the keypoint term weighted as in `stages.optimise_stage`.
 
     Returns (winner, one record per optimised hypothesis, the next step number)."""
-    rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses, settings.hypothesis_deg)
-    candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypothesis_scales) for axis, transform in rotated]
+    rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses.count, settings.hypotheses.rotation_deg)
+    candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypotheses.scales) for axis, transform in rotated]
     coarse_score, judge_score = (objective_with_anchors(losses, start_ns, settings, anchor) for losses in (stage.losses, judge))
     scores = [coarse_score(transform) for _, transform in candidates]
     runs = []
-    for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses_kept)]:
+    for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses.kept)]:
         own = History(history.names)
         final, _ = optimise_stage(stage, meta, candidates[index][1], settings, own, first_step, on_step, anchor=anchor)
         runs.append((final, judge_score(final), own, candidates[index][0], scores[index]))

@@ -17,7 +17,9 @@ from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 
 Array = np.ndarray
 ACCURATE = (5.0, 0.2)
+"""(ΔR degrees, ΔT scene units) below which a result is accurate: the paper's thresholds (MTA)."""
 OUTLIER = (10.0, 0.5)
+"""(ΔR degrees, ΔT scene units) beyond either of which a result is an outlier: the paper's definition (O%)."""
 
 
 @dataclass

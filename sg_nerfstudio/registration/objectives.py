@@ -131,41 +131,44 @@ def objective_teacher_config(reference: ReferenceModel, settings: RegistrationSe
     and photometric only), at `teacher_input_size` when set, else the reference's input size for its own teacher
     and the render teacher's default for another one."""
     check_objective_settings(settings)
-    name = settings.render_teacher or reference.teacher.name
+    name = settings.objective.render_teacher or reference.teacher.name
     if name == reference.teacher.name:
-        return replace(reference.teacher, input_size=settings.teacher_input_size or reference.teacher.input_size)
-    return replace(reference.teacher, name=name, input_size=settings.teacher_input_size)
+        return replace(reference.teacher, input_size=settings.objective.teacher_input_size or reference.teacher.input_size)
+    return replace(reference.teacher, name=name, input_size=settings.objective.teacher_input_size)
 
 
 def check_objective_settings(settings: RegistrationSettings) -> None:
     """One sentence (ObjectiveSettingsError) for a render teacher given to the features objective, before any work."""
-    if settings.render_teacher is not None and settings.objective == "features":
+    if settings.objective.render_teacher is not None and settings.objective.kind == "features":
         raise ObjectiveSettingsError(
-            f"--render-teacher {settings.render_teacher} describes rendered images (--objective teacher-on-render or photometric), "
-            "but the features objective compares the reference's distilled feature field; leave --render-teacher unset or change the objective."
+            f"--objective.render-teacher {settings.objective.render_teacher} describes rendered images (--objective.kind teacher-on-render or "
+            "photometric), but the features objective compares the reference's distilled feature field; leave --objective.render-teacher unset or "
+            "change the objective."
         )
 
 
 def refine_settings(settings: RegistrationSettings) -> RegistrationSettings:
-    """The settings of the refine stage: the main stage's, or with a `refine_teacher` that descriptor applied to the
+    """The settings of the refine stage: the main stage's, or with a `last_stage.teacher` that descriptor applied to the
     renders and the photos (teacher-on-render, whatever the main objective) at its default input size."""
-    if settings.refine_teacher is None:
+    if settings.last_stage.teacher is None:
         return settings
-    same_teacher = settings.objective == "teacher-on-render" and settings.refine_teacher == settings.render_teacher
-    return replace(settings, objective="teacher-on-render", render_teacher=settings.refine_teacher,
-                   teacher_input_size=settings.teacher_input_size if same_teacher else None)
+    same_teacher = settings.objective.kind == "teacher-on-render" and settings.last_stage.teacher == settings.objective.render_teacher
+    return settings.changed(objective={
+        "kind": "teacher-on-render", "render_teacher": settings.last_stage.teacher,
+        "teacher_input_size": settings.objective.teacher_input_size if same_teacher else None,
+    })
 
 
 def build_objective(reference: ReferenceModel, settings: RegistrationSettings) -> Objective:
     """The objective the settings name, with its teacher (`objective_teacher_config`)."""
     config = objective_teacher_config(reference, settings)
-    return OBJECTIVES[settings.objective](build_teacher(config), config)
+    return OBJECTIVES[settings.objective.kind](build_teacher(config), config)
 
 
 def render_size(width: int, height: int, settings: RegistrationSettings, objective: Objective) -> tuple[int, int]:
     """(width, height) the model renders a photo of this size at: long side render_scale x teacher grid,
     capped at the photo's long side and at the objective's cap (the teacher's input size for teacher-on-render)."""
-    long_side = min(settings.render_scale * objective.teacher.grid_size, max(width, height), objective.render_cap())
+    long_side = min(settings.objective.render_scale * objective.teacher.grid_size, max(width, height), objective.render_cap())
     factor = max(8, round(long_side)) / max(width, height)
     return max(8, round(width * factor)), max(8, round(height * factor))
 
@@ -235,8 +238,8 @@ class PhotoLosses:
 
     With `cull` (the default) the model is first restricted to what the photos can see around the pose
     (`visibility.VisibleSubset`: the same renders, at a cost that follows the visible Gaussians) and, with
-    `settings.level_of_detail`, coarsened to the render's pixels (`level_of_detail`; coarser beyond
-    `settings.render_budget` Gaussians)."""
+    `settings.level_of_detail.voxel_pixels`, coarsened to the render's pixels (`level_of_detail`; coarser beyond
+    `settings.level_of_detail.render_budget` Gaussians)."""
 
     def __init__(
         self, reference: ReferenceModel, photos: list[PreparedPhoto], objective: Objective, settings: RegistrationSettings,
@@ -244,7 +247,7 @@ class PhotoLosses:
     ):
         self.reference, self.photos, self.objective, self.settings, self.near_plane = reference, photos, objective, settings, near_plane
         cameras = [CullingCamera(p.cam_from_meta, p.K, p.width, p.height) for p in photos]
-        self.visible = VisibleSubset(reference, cameras, settings.level_of_detail, settings.render_budget) if cull else None
+        self.visible = VisibleSubset(reference, cameras, settings.level_of_detail.voxel_pixels, settings.level_of_detail.render_budget) if cull else None
         self.timings = {"render": 0.0, "loss": 0.0, "backward": 0.0}
 
     def __call__(self, meta_to_dataparser: Sim3, indices: list[int]) -> tuple[list[Tensor], Tensor]:
@@ -280,7 +283,7 @@ class PhotoLosses:
                     render, depth = render[..., :-1], render[..., -1]
                     ratios[position] = log_depth_ratios(depth.cpu(), covered[..., 0].cpu(), photo.points, log_scale)
                 on_grid = self.objective.to_target_grid(render[None], photo.target).to(photo.target.device)
-                losses[position] = per_image_loss(on_grid, photo.target[None], self.settings.loss)[0]
+                losses[position] = per_image_loss(on_grid, photo.target[None], self.settings.objective.loss)[0]
                 coverage[position] = covered.mean().cpu()
             self.timings["render"] += middle - start
             self.timings["loss"] += time.perf_counter() - middle

@@ -1,12 +1,10 @@
 """The registration of one meta-image: one Sim(3) against the frozen reference model (`register`, the entry point).
 
-Phases, each a function below:
-1. `anchored_start`: with keypoint anchors, the render-free pre-alignment and the camera fit (the photos' focal
-   lengths, poses and radial distortion fitted with the Sim(3): registration/keypoints.py, anchored_adjustment.py);
-   without them, the start as given.
-2. The rendered stages (`run_stages`): the coarse `pyramid` stages (several starts at the first with `hypotheses`:
-   hypotheses.py), the main stage, the refine stage; each Adam on delta over its per-photo losses (stages.py). Where the
-   anchors leave the scale free, the scale is searched before the main stage (scale_search.py).
+Phases:
+1. `anchored_start.start_from_anchors`: with keypoint anchors, the render-free pre-alignment, the camera fit and the
+   scale the anchors leave free; without them, the start as given.
+2. `run_stages`: the coarse-to-fine stages (several starts at the first with hypotheses: hypotheses.py), the main stage,
+   the last stage; each Adam on delta over its per-photo losses (stages.py).
 3. `assess`: the final evaluation and the verdict's evidence, probed around the result (verdict.py, other_minimum.py).
 
 Everything the caller passes in and gets back is in the reference *world* frame; the phases work in nerfstudio's
@@ -18,30 +16,27 @@ from __future__ import annotations
 import math
 import time
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Callable, ContextManager, Optional
 
 import numpy as np
 import torch
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.geometry.alignment import align_cameras, camera_residuals
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.registration import other_minimum
 from sg_nerfstudio.registration.depth_agreement import DepthAgreement, summarise
 from sg_nerfstudio.registration.hypotheses import best_hypothesis
-from sg_nerfstudio.registration.camera_fit import CameraFit, fit_cameras
-from sg_nerfstudio.registration.keypoints import Anchoring
-from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos, with_camera_changes
+from sg_nerfstudio.registration.anchored_start import AnchoredStart, Anchoring, prealigns, start_from_anchors
+from sg_nerfstudio.registration.objectives import Objective, PhotoLosses, PreparedPhoto, build_objective, prepare_photos
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import TrimmingRule, check_robust_settings
-from sg_nerfstudio.registration.scale_search import scale_the_anchors_leave_free
 from sg_nerfstudio.registration.schedules import History
-from sg_nerfstudio.registration.settings import RegistrationSettings, check_ranges
+from sg_nerfstudio.registration.settings import RegistrationSettings, as_record, check_ranges
 from sg_nerfstudio.registration.stages import (
-    Stage, coarse_stages, objective_with_anchors, optimise_stage, refine_stages, refines, update_centre, uses_anchors,
+    Stage, coarse_stages, objective_with_anchors, optimise_stage, refine_stages, refines, uses_anchors,
 )
 from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence, probe_sizes
 from sg_nerfstudio.registration.visibility import MAX_ROTATION_DEG
@@ -70,22 +65,22 @@ class RegistrationResult:
     photo_names: list[str]
     coverage: Array  # [P] fraction of rendered pixels covered by the model at the initial transform
     verdict: Verdict  # registered | uncertain | failed, with its evidence (verdict.py)
-    hypotheses: list[dict] = field(default_factory=list)  # with settings.hypotheses: each optimised start and its end
+    hypotheses: list[dict] = field(default_factory=list)  # with settings.hypotheses.count: each optimised start and its end
     rendered_model: dict = field(default_factory=dict)
     """What the main stage rendered at its last cull (`rendered_model_record`): the reference's Gaussians, those
     rendered after culling and level of detail, the merge voxel (render pixels; 0: none) and the culls."""
     focal_scales: dict[str, float] = field(default_factory=dict)
-    """With `settings.refine_focal`: photo name -> the scale of its SfM focal length the registration fitted and
+    """With `settings.camera_fit.focal`: photo name -> the scale of its SfM focal length the registration fitted and
     rendered with (photos not listed kept theirs)."""
     pose_corrections: dict[str, dict[str, float]] = field(default_factory=dict)
-    """With `settings.refine_photo_poses`: photo name -> how far the registration moved its camera from where `transform`
+    """With `settings.camera_fit.photo_poses`: photo name -> how far the registration moved its camera from where `transform`
     puts the meta-image's own camera: {"rotation_deg", "centre_shift" (reference world units)} (photos not listed were
     not moved)."""
     radial_k1: dict[int, float] = field(default_factory=dict)
-    """With `settings.refine_distortion`: COLMAP camera id -> the first radial coefficient the registration fitted and
+    """With `settings.camera_fit.distortion`: COLMAP camera id -> the first radial coefficient the registration fitted and
     undistorted its photos with (cameras not listed kept theirs)."""
     photo_poses: dict[str, Array] = field(default_factory=dict)
-    """With `settings.refine_photo_poses`: photo name -> [3, 4] cam_from_world (OpenCV) in the reference world of each
+    """With `settings.camera_fit.photo_poses`: photo name -> [3, 4] cam_from_world (OpenCV) in the reference world of each
     photo the registration moved, where its last stages rendered it (the others sit at `transform` applied to their own
     pose)."""
     scale_search: Optional[dict] = None
@@ -106,15 +101,14 @@ def register(
 ) -> RegistrationResult:
     """Estimate the Sim(3) meta -> reference world starting from `initial_world` (the three phases of the module docstring).
 
-    Stages: the coarse-to-fine `pyramid` stages of the settings (if any; hypotheses around the start at the
-    coarsest), then the main stage at the settings' teacher size, then the `refine_steps` stage (if any). The
+    Stages: the coarse-to-fine stages of the settings (if any; hypotheses around the start at the
+    coarsest), then the main stage at the settings' teacher size, then the last stage (if any). The
     verdict and the final losses are the main stage's objective (the one its thresholds were calibrated on).
     `photos` and `objective` may come prepared for the main stage (`prepare_photos`, `build_objective`: the
     teacher is built once). `on_step(step, transform)` is called after every step of every stage
     (`total_steps(settings, anchored)` in all) with the current estimate (meta -> world). `keypoints`: the photos'
-    verified SIFT correspondences with the reference (`Initialiser.keypoints`); with `settings.keypoint_weight > 0`
-    every stage adds their reprojection term
-    (registration/keypoints.py), and with `settings.refine_focal` / `settings.refine_photo_poses` the photos' focal
+    verified SIFT correspondences with the reference (`Initialiser.keypoints`); with `settings.anchors.weight > 0`
+    every stage adds their reprojection term (registration/anchored_start), and with `settings.camera_fit.focal` / `settings.camera_fit.photo_poses` the photos' focal
     lengths / poses fitted to them before the first render are used by every stage (`RegistrationResult.focal_scales`,
     `pose_corrections`); with moved poses the returned transform is the final one composed with the Sim(3) that maps
     the given cameras onto the moved ones (`geometry.alignment.align_cameras`).
@@ -125,15 +119,16 @@ def register(
     objective = objective or build_objective(reference, settings)
     ns_to_world = reference.world_to_dataparser.inverse()
     initial_ns = reference.world_to_dataparser @ initial_world
-    near_plane = effective_near_plane(meta, initial_ns, settings.near_plane)
-    start = anchored_start(meta, photos, initial_ns, settings, reference.world_to_dataparser, keypoints, objective.teacher.grid_size)
-    meta = start.meta
-    photos = start.photos if start.photos is not None else prepare_photos(reference, meta, settings, objective)
+    near_plane = effective_near_plane(meta, initial_ns, settings.objective.near_plane)
+
+    def main_losses(meta: MetaImage, prepared: Optional[list[PreparedPhoto]]) -> PhotoLosses:
+        prepared = prepared if prepared is not None else prepare_photos(reference, meta, settings, objective)
+        return PhotoLosses(reference, prepared, objective, settings, near_plane)
+
+    start = start_from_anchors(meta, photos, initial_ns, settings, reference.world_to_dataparser, keypoints, objective.teacher.grid_size, main_losses)
+    meta, photos, current, scale_search = start.meta, start.losses.photos, start.transform, start.scale_search
     main_steps, main_lr = main_schedule(settings, start.prealigned)
-    main = Stage("main", PhotoLosses(reference, photos, objective, settings, near_plane), main_steps, main_lr, settings.lr_final)
-    current, scale_search = start.transform, None
-    if start.prealigned:
-        current, scale_search = scale_the_anchors_leave_free(main.losses, start.anchor, meta, current, settings)
+    main = Stage("main", start.losses, main_steps, main_lr, settings.optimiser.lr_final)
     initial_losses, coverage = evaluate_start(main.losses, initial_ns @ start.camera_shift.inverse(), meta.name)  # the given cameras at the start
 
     history = History([p.name for p in photos])
@@ -158,7 +153,7 @@ def register(
         wall_time_s=time.perf_counter() - started,
         timings=timings,
         near_plane=near_plane,
-        settings=asdict(settings),
+        settings=as_record(settings),
         photo_names=[p.name for p in photos],
         coverage=coverage,
         verdict=decide(evidence),
@@ -166,40 +161,10 @@ def register(
         rendered_model=rendered_model_record(reference, main.losses),
         focal_scales=start.fit.focal_scales,
         radial_k1=start.fit.radial_k1,
-        pose_corrections=pose_corrections(start.given, meta, start.camera_shift, current.scale * ns_to_world.scale, set(start.fit.poses)),
+        pose_corrections=start.pose_corrections(current.scale * ns_to_world.scale),
         photo_poses={photo.name: (ns_to_world @ current).move_camera(photo.cam_from_world) for photo in meta.photos if photo.name in start.fit.poses},
         scale_search=scale_search,
     )
-
-
-@dataclass
-class AnchoredStart:
-    """Where the rendered stages begin (`anchored_start`)."""
-
-    transform: Sim3  # meta -> dataparser: the keypoint pre-alignment's and camera fit's result, or the start as given
-    fit: CameraFit  # the photos' fitted focal scales, poses and radial k1 (none without a camera fit)
-    meta: MetaImage  # the meta-image with those cameras
-    given: MetaImage  # the meta-image as given
-    photos: Optional[list[PreparedPhoto]]  # the caller's prepared photos with the fitted cameras; None: prepare them again
-    anchor: Anchoring  # the keypoint anchors (empty without keypoints), for the moved photos
-    camera_shift: Sim3  # meta -> meta: maps the given cameras onto the moved ones (identity when no photo moved)
-    prealigned: bool  # whether the keypoint pre-alignment ran
-
-
-def anchored_start(
-    meta: MetaImage, photos: Optional[list[PreparedPhoto]], initial_ns: Sim3, settings: RegistrationSettings, world_to_ns: Sim3,
-    keypoints: Optional[list[PhotoKeypoints]], grid_size: int,
-) -> AnchoredStart:
-    """Phase 1 of `register`: with keypoint anchors that the settings weigh, the render-free pre-alignment from
-    `initial_ns` (meta -> dataparser) and the camera fit (`keypoint_prealignment`); otherwise the start as given."""
-    anchor = Anchoring(meta, keypoints or [], world_to_ns, settings.keypoint_weight)
-    if not prealigns(settings, bool(anchor)):
-        return AnchoredStart(initial_ns, CameraFit(initial_ns), meta, meta, photos, anchor, Sim3.identity(), False)
-    fit = keypoint_prealignment(anchor, meta, initial_ns, settings, grid_size)
-    moved, photos = with_fitted_cameras(meta, photos, fit)
-    anchor = anchor.for_meta(moved, narrow=True if fit.poses else None)  # the moved photos fit their keypoints under the narrow kernel
-    camera_shift = align_cameras(np.stack(meta.poses), np.stack(moved.poses)).transform if fit.poses else Sim3.identity()
-    return AnchoredStart(fit.transform, fit, moved, meta, photos, anchor, camera_shift, True)
 
 
 def run_stages(
@@ -207,11 +172,11 @@ def run_stages(
     history: History, on_step: Optional[Callable[[int, Sim3], None]], anchor: Anchoring,
 ) -> tuple[Sim3, list[dict], int]:
     """Phase 2 of `register`: the stages in order from `start_ns` (meta -> dataparser), the first from several starts with
-    `settings.hypotheses`; (the result, the hypotheses' records, the number of steps). `initial_losses` [P]: the main
+    `settings.hypotheses.count`; (the result, the hypotheses' records, the number of steps). `initial_losses` [P]: the main
     stage's losses at `initial_ns`, which seed its robust rule when it runs first from there."""
     current, step, hypotheses = start_ns, 0, []
     for index, stage in enumerate(stages):
-        if index == 0 and settings.hypotheses > 0:
+        if index == 0 and settings.hypotheses.count > 0:
             current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, on_step, anchor)
         else:
             seed = initial_losses if stage is main and index == 0 and current is initial_ns else None  # the start's losses, if still the start
@@ -317,44 +282,6 @@ def record_other_minimum(evidence: Evidence, main: Stage, meta: MetaImage, resul
         evidence.other_minimum_rise, evidence.other_minimum_cells = found.rise, found.distance_cells
 
 
-def keypoint_prealignment(anchor: Anchoring, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, grid_size: int) -> CameraFit:
-    """The render-free stage before the first render: the keypoint term alone from `start_ns` (meta -> dataparser)
-    and, with `settings.refine_focal` or `settings.refine_photo_poses`, then jointly with the photos' focal lengths and
-    / or poses (`camera_fit.fit_cameras`; nothing fitted without them)."""
-    steps = settings.keypoint_prealign_steps
-    current = anchor.prealign(start_ns, update_centre(meta, start_ns, settings), grid_size, steps)
-    if not (settings.refine_focal or settings.refine_photo_poses or settings.refine_distortion):
-        return CameraFit(current)
-    pose_prior = settings.photo_pose_prior_scale if settings.refine_photo_poses else None
-    return fit_cameras(
-        anchor, current, update_centre(meta, current, settings), grid_size, settings.camera_fit_iterations, settings.refine_focal, pose_prior,
-        settings.refine_distortion, settings.camera_fit == "adjustment",
-    )
-
-
-def with_fitted_cameras(meta: MetaImage, photos: Optional[list[PreparedPhoto]], fit: CameraFit) -> tuple[MetaImage, Optional[list[PreparedPhoto]]]:
-    """`meta` and its prepared `photos` (if any) with the focal lengths, poses and radial distortion of `fit`; with a new
-    distortion the photos are not returned (None): they must be undistorted again (`prepare_photos`)."""
-    factors = {photo.name: fit.focal_scales[photo.name] / photo.focal_scale for photo in meta.photos if photo.name in fit.focal_scales}
-    meta = meta.with_focal_scales(fit.focal_scales).with_poses(fit.poses).with_radial_distortion(fit.radial_k1)
-    if photos is None or fit.radial_k1:
-        return meta, None
-    return meta, with_camera_changes(photos, factors, fit.poses)
-
-
-def pose_corrections(given: MetaImage, moved: MetaImage, camera_shift: Sim3, world_per_meta: float, names: set[str]) -> dict[str, dict[str, float]]:
-    """Per photo in `names` (the moved ones), how far its moved camera (`moved`) sits from its given one carried by
-    `camera_shift` (the Sim(3) that maps the given cameras onto the moved ones): rotation (degrees) and centre distance
-    in reference world units (`world_per_meta`: meta units to world)."""
-    if not names:
-        return {}
-    rotation, centre = camera_residuals(camera_shift, np.stack(given.poses), np.stack(moved.poses))
-    return {
-        photo.name: {"rotation_deg": round(float(r), 4), "centre_shift": round(float(c) * world_per_meta, 6)}
-        for photo, r, c in zip(given.photos, rotation, centre) if photo.name in names
-    }
-
-
 def rendered_model_record(reference: ReferenceModel, losses: PhotoLosses) -> dict:
     """{gaussians, rendered, voxel_pixels, culls} of a stage's losses at its last cull (every Gaussian, no cull,
     when it does not cull)."""
@@ -364,25 +291,20 @@ def rendered_model_record(reference: ReferenceModel, losses: PhotoLosses) -> dic
     return {"gaussians": reference.count, "rendered": visible.subset.count, "voxel_pixels": visible.voxel_pixels, "culls": visible.culls}
 
 
-def prealigns(settings: RegistrationSettings, anchored: bool) -> bool:
-    """Whether the keypoint pre-alignment runs: keypoint anchors hold the pose and the settings ask for it."""
-    return uses_anchors(settings, anchored) and settings.keypoint_prealign_steps > 0
-
-
 def main_schedule(settings: RegistrationSettings, prealigned: bool) -> tuple[int, float]:
-    """(steps, initial learning rate) of the main stage: `prealigned_steps` / `prealigned_lr` after the keypoint
+    """(steps, initial learning rate) of the main stage: `anchors.main_steps` / `anchors.main_lr` after the keypoint
     pre-alignment where the settings give them, else `steps` / `lr`."""
     if not prealigned:
-        return settings.steps, settings.lr
-    steps = settings.prealigned_steps if settings.prealigned_steps is not None else settings.steps
-    return steps, settings.prealigned_lr if settings.prealigned_lr is not None else settings.lr
+        return settings.optimiser.steps, settings.optimiser.lr
+    steps = settings.anchors.main_steps if settings.anchors.main_steps is not None else settings.optimiser.steps
+    return steps, settings.anchors.main_lr if settings.anchors.main_lr is not None else settings.optimiser.lr
 
 
 def total_steps(settings: RegistrationSettings, anchored: bool = False) -> int:
     """Steps of all stages (what `on_step` counts up to) for a meta-image with (`anchored`) or without keypoint
     anchors: each optimised hypothesis runs the first stage."""
     main = main_schedule(settings, prealigns(settings, anchored))[0]
-    first = settings.pyramid_steps if settings.pyramid else main
-    runs = min(settings.hypotheses + 1, max(1, settings.hypotheses_kept)) if settings.hypotheses else 1
-    refine = settings.refine_steps if refines(settings, anchored) else 0
-    return main + len(settings.pyramid) * settings.pyramid_steps + (runs - 1) * first + refine
+    first = settings.coarse_to_fine.steps if settings.coarse_to_fine.factors else main
+    runs = min(settings.hypotheses.count + 1, max(1, settings.hypotheses.kept)) if settings.hypotheses.count else 1
+    refine = settings.last_stage.steps if refines(settings, anchored) else 0
+    return main + len(settings.coarse_to_fine.factors) * settings.coarse_to_fine.steps + (runs - 1) * first + refine

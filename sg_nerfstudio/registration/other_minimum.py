@@ -1,35 +1,19 @@
 """Another minimum near the result: the verdict's look for a second answer one repetition away.
 
-The verdict's 12 probes (verdict.py) render the model one teacher cell around the result: they tell a minimum from a
-slope or a plateau, not one minimum from another. A facade of identical windows has minima one window apart, and
-there they are equally deep: on a synthetic facade without unique detail (`sg-make-scene --unique-detail 0`, 12
-photos, no SIFT correspondences, so the dense objective alone) a 10° start ended one window (ΔT 0.185) from the
-truth with 12 of 12 photos agreeing and a 22% rise one cell away, `registered`, while the truth's objective is no
-lower (0.0543 against the result's 0.0542; docs/measurements.md "A repetitive facade and the look for another minimum").
+The verdict's 12 probes tell a minimum from a slope or a plateau, not one minimum from another: a facade of identical
+windows has minima one window apart, equally deep (docs/measurements.md "A repetitive facade and the look for another
+minimum"). Where nothing else fixes the pose (no keypoint anchors), the verdict also looks further:
 
-So where nothing else fixes the pose (a registration without keypoint anchors), the verdict also looks further:
+1. *scan*: the result shifted along the photos' mean image axes, both ways, every `SCAN_STEP_CELLS` translation probes
+   out to `SCAN_REACH_CELLS`, the robust objective at each;
+2. *dip*: the lowest local minimum of those four profiles beyond the first step, refined to its parabola's vertex;
+3. *descent*: if the dip reads within the gate (`DESCENT_GATE`) of the result, `REFINE_STEPS` steps of the
+   registration's own optimiser from there (`refine`, given by the caller);
+4. *compare*: an end at least `DISTINCT_CELLS` probes from the result is another minimum; its rise (T_other - T) / T is
+   the evidence, and within `MARGIN` (or lower) the result is one of two answers the descriptor cannot tell apart.
 
-1. *scan*: the result shifted along the photos' mean image axes (x and y of their cameras, in the dataparser frame,
-   both ways; a facade's rows and columns of windows repeat along them) every `SCAN_STEP_CELLS` translation probes
-   (the verdict's shift that moves the image by one teacher cell) out to `SCAN_REACH_CELLS`, the robust objective at
-   each (T(d), d = 0 at the result);
-2. *dip*: the lowest local minimum of those four profiles beyond the first step, refined to the vertex of the parabola
-   through it and its neighbours;
-3. *descent*: if the dip reads within the gate (`DESCENT_GATE`) of the result, `REFINE_STEPS` steps of the registration's own
-   optimiser from there (`refine`, given by the caller), so that a pose near a second minimum reaches it (a repetition
-   is seldom a pure shift of the whole meta-image: photos see the facade from different sides);
-4. *compare*: if the end lies at least `DISTINCT_CELLS` cells from the result (its cameras' centroid moved by that
-   many translation probes, or the rotation by that many rotation probes), it is another minimum, and its rise
-   (T_other - T) / T is the evidence. Within `MARGIN` (or lower) the result is one of two answers the descriptor
-   cannot tell apart: `uncertain`.
-
-The look runs on at most `PHOTOS` photos, those the model covers most at the result: a repetition that fools the
-meta-image fools each photo that sees it, and on all 20 photos of a synthetic meta-image the look took 18.7 s of a 57 s
-registration. Not the photos with the lowest losses at the result: chosen for fitting the result, they favour it (on
-the repetitive facade the four best put the other minimum at +6.5%, all twelve at +0.4%). Cost: 4 x SCAN_REACH_CELLS / SCAN_STEP_CELLS + 1 renders of
-those photos, and REFINE_STEPS optimiser steps on them where a dip passes the gate; only for registrations without
-keypoint anchors (`optimize.record_other_minimum`). Frames: transforms are meta -> dataparser numpy Sim3s, as in
-`PhotoLosses`.
+The look runs on at most `PHOTOS` photos, those the model covers most at the result (not those with the lowest losses,
+which favour the result). Frames: transforms are meta -> dataparser numpy Sim3s, as in `PhotoLosses`.
 """
 
 from __future__ import annotations
@@ -45,30 +29,24 @@ from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 Array = np.ndarray
 
 SCAN_STEP_CELLS = 2.0
-"""Scan step in translation probes: a minimum of the offline descriptor is 3-4 cells wide (the one-window minimum of
-the repetitive facade: +17% at the nearest 2-cell sample, +0.3% after the descent)."""
+"""Scan step in translation probes: a minimum of the offline descriptor is 3-4 cells wide, so a 2-cell step lands in it."""
 SCAN_REACH_CELLS = 16.0
 """How far the scan looks, in translation probes: half the teacher grid of the fast presets (32 cells), i.e. half a
 photo's width: a repetition must appear twice in a photo for the photo to be fooled by it."""
 REFINE_STEPS = 20
-"""Optimiser steps from the dip (the repetitive facade: 10 steps ended 2.8% above the other minimum's floor, 20 steps
-0.3% / -0.1% at lr 0.003 / 0.01)."""
+"""Optimiser steps from the dip: enough to reach the floor of a minimum a scan step away (10 stopped short)."""
 REFINE_LR = 0.01
 """Learning rate of the descent from the dip (decaying to a sixth, as the scan's step leaves it within a few cells)."""
 PHOTOS = 6
 """The look uses at most this many photos (those the model covers most at the result)."""
 DESCENT_GATE = 0.3
-"""A dip is descended from only if it reads less than max(DESCENT_GATE, 2 x the result's sharpness) above the result:
-sampled up to a cell from its bottom, a minimum as deep as the result reads about the result's own one-cell rise (the
-verdict's sharpness) above it; the repetitive facade's dips read +15-17% before the descent, its neighbour with unique
-detail +60%."""
+"""A dip is descended from only if it reads less than max(this, 2 x the result's sharpness) above the result: sampled up
+to a cell from its bottom, a minimum as deep as the result reads about one cell's rise above it."""
 DISTINCT_CELLS = 2.0
 """A descent that ends closer to the result than this many probes (translation or rotation) found the result again."""
 MARGIN = 0.05
-"""Another minimum whose robust objective is less than this much higher than the result's (relative) makes the
-result uncertain: the same 5% the verdict asks of a resolved minimum one cell away (`verdict.REGISTERED_SHARPNESS`).
-The repetitive facade's other minimum: +0.3% / +0.4% on all 12 photos, -0.1% to +1.9% on the 6 of the look; the same
-facade with unique detail: +52%; real photos without anchors: +18% or more, where not lower."""
+"""Another minimum less than this much higher than the result (relative) makes it uncertain: the same 5% the verdict
+asks of a resolved minimum one cell away (`verdict.REGISTERED_SHARPNESS`)."""
 
 
 @dataclass

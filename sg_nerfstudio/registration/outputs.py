@@ -5,12 +5,12 @@
                      final trimmed loss, steps, wall time, settings, the optimised hypotheses (if any), the
                      scale search when the keypoint anchors left the scale free (one photo's, or those of photos
                      from one spot: `scale_search`, else null), per
-                     photo its losses, the focal_scale it was rendered with and (with `refine_photo_poses`) its
+                     photo its losses, the focal_scale it was rendered with and (with `camera_fit.photo_poses`) its
                      pose_correction: how far its camera was moved from where the Sim(3) puts it (null: not moved)
-                     and (with `refine_distortion`) its camera's radial_k1 (null: as the SfM found it)
+                     and (with `camera_fit.distortion`) its camera's radial_k1 (null: as the SfM found it)
     aligned/         the meta-image's COLMAP model in the reference world frame as the registration placed it
                      (`registered_reconstruction`): moved by the Sim(3), with the focal lengths, k1 and poses it
-                     fitted (`refine_focal` / `refine_distortion` / `refine_photo_poses`) and then every track
+                     fitted (`camera_fit.focal` / `.distortion` / `.photo_poses`) and then every track
                      triangulated again with those cameras
     losses.csv       per step and photo: loss, whether LTS kept it, its weight, the stage (coarse-<size> | main)
     report/          loss_curve.png, ignored_histogram.png, comparisons/*.png (before | after, each titled; top
@@ -137,7 +137,7 @@ def _plot_losses(path: Path, result: RegistrationResult) -> None:
         axis.axvline(row["step"], color="grey", linestyle=":")
         axis.annotate(row["stage"], (row["step"], 1.0), xycoords=("data", "axes fraction"), va="top", fontsize=7)
     axis.set_xlabel("step")
-    axis.set_ylabel(f"{result.settings['loss']} {result.settings['objective']} loss")
+    axis.set_ylabel(f"{result.settings['objective']['loss']} {result.settings['objective']['kind']} loss")
     axis.legend()
     figure.tight_layout()
     figure.savefig(path, dpi=120)

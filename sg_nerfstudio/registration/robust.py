@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.registration.settings import LossKind, Robust, RegistrationSettings
+from sg_nerfstudio.registration.settings import LossKind, RegistrationSettings, RobustRule
 
 MAD_TO_SIGMA = 1.4826
 """MAD of a normal distribution x this = its standard deviation."""
@@ -40,12 +40,12 @@ class RobustSettingsError(InputError):
 
 def check_robust_settings(settings: RegistrationSettings) -> None:
     """RobustSettingsError naming the first robust-loss setting outside its range."""
-    if not 0.0 < settings.lts_percentile <= 100.0:
-        raise RobustSettingsError(f"--lts-percentile must be in (0, 100], got {settings.lts_percentile}.")
-    if not settings.outlier_z > 0.0:
-        raise RobustSettingsError(f"--outlier-z must be positive (robust scales above the median), got {settings.outlier_z}.")
-    if not 0.0 <= settings.trim_after < 1.0:
-        raise RobustSettingsError(f"--trim-after must be in [0, 1) (a fraction of each stage's steps), got {settings.trim_after}.")
+    if not 0.0 < settings.robust.lts_percentile <= 100.0:
+        raise RobustSettingsError(f"--robust.lts-percentile must be in (0, 100], got {settings.robust.lts_percentile}.")
+    if not settings.robust.outlier_z > 0.0:
+        raise RobustSettingsError(f"--robust.outlier-z must be positive (robust scales above the median), got {settings.robust.outlier_z}.")
+    if not 0.0 <= settings.robust.trim_after < 1.0:
+        raise RobustSettingsError(f"--robust.trim-after must be in [0, 1) (a fraction of each stage's steps), got {settings.robust.trim_after}.")
 
 
 def per_image_loss(rendered: Tensor, target: Tensor, kind: LossKind) -> Tensor:
@@ -59,7 +59,7 @@ def per_image_loss(rendered: Tensor, target: Tensor, kind: LossKind) -> Tensor:
 class TrimmingRule:
     """Which photos a robust objective counts, from a set of per-photo losses (see the module docstring)."""
 
-    robust: Robust
+    robust: RobustRule
     percentile: float = 50.0  # lts, fixed-lts
     z: float = 3.0  # outlier-lts
 
@@ -69,7 +69,7 @@ class TrimmingRule:
 
     @classmethod
     def of(cls, settings: RegistrationSettings) -> "TrimmingRule":
-        return cls(settings.robust, settings.lts_percentile, settings.outlier_z)
+        return cls(settings.robust.rule, settings.robust.lts_percentile, settings.robust.outlier_z)
 
     def threshold(self, losses: np.ndarray) -> float:
         """The largest loss that still counts among [P] per-photo `losses` (inf: every photo counts). irls weighs

@@ -45,8 +45,8 @@ class RetrimSchedule:
     re-decides (the paper's rule, which renders every photo every step)."""
 
     def __init__(self, count: int, settings: RegistrationSettings, warmup_steps: int):
-        self.batches = BatchSchedule(count, settings.images_per_step, settings.seed)
-        self.every, self.warmup_steps, self.calls = settings.retrim_every, warmup_steps, 0
+        self.batches = BatchSchedule(count, settings.optimiser.photos_per_step, settings.seed)
+        self.every, self.warmup_steps, self.calls = settings.robust.retrim_every, warmup_steps, 0
         self.decided: list[int] = []  # the photos of the last step that re-decided
         self.counted_there: Optional[list[int]] = None  # those of them the rule counted; None: this step re-decides
         self.between = False  # whether this step is one between re-decisions

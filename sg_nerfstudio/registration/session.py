@@ -84,7 +84,8 @@ class RegistrationJob:
     """Cache of SIFT features and the reference's SIFT triangulation (default: ~/.cache/sg_nerfstudio/initialisers)."""
     gt: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction] = ()
     """Ground-truth transform (gt_transform.json) to report ΔR / ΔT; once per meta-image, in order."""
-    settings: RegistrationSettings = field(default_factory=RegistrationSettings)
+    settings: Annotated[RegistrationSettings, tyro.conf.arg(name="")] = field(default_factory=RegistrationSettings)
+    """The registration settings, by group (--optimiser.*, --objective.*, ...); --config sets them all at once."""
     merge_reference: bool = False
     """With several meta-images: also put the reference's own COLMAP cameras and points into merged/ (read
     from --reference-colmap or the trained config's dataparser)."""
@@ -188,7 +189,7 @@ def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     if any(value in METHODS for value in init_values):
         initialiser = build_initialiser(job)
         initialiser.check_reference()
-    elif job.settings.keypoint_weight > 0:
+    elif job.settings.anchors.weight > 0:
         initialiser = keypoint_initialiser(job, console)
 
     reference = load_reference(job.load_config, device=resolve_device(job.device))
@@ -229,7 +230,7 @@ def keypoint_initialiser(job: RegistrationJob, console: Console) -> Optional[Ini
 def anchors_for(initialiser: Optional[Initialiser], meta: MetaImage, settings: RegistrationSettings, console: Console) -> list[PhotoKeypoints]:
     """The meta-image's keypoint anchors when the settings weigh them (empty otherwise or when the reference's
     SIFT cloud cannot be built, which is said in one line)."""
-    if initialiser is None or settings.keypoint_weight <= 0:
+    if initialiser is None or settings.anchors.weight <= 0:
         return []
     try:
         with rich_progress(console) as progress:
@@ -254,10 +255,10 @@ def register_one(
         task = progress.add_task(f"Registering {meta.name}", total=total_steps(job.settings, anchored=bool(keypoints)))
         result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective, keypoints=keypoints)
     rendered = result.rendered_model
-    if rendered.get("voxel_pixels", 0.0) > job.settings.level_of_detail:
+    if rendered.get("voxel_pixels", 0.0) > job.settings.level_of_detail.voxel_pixels:
         console.print(
             f"{meta.name}: rendered {rendered['rendered']:,} of the reference's {rendered['gaussians']:,} Gaussians, merged at "
-            f"{rendered['voxel_pixels']:g} render pixels (--render-budget {job.settings.render_budget:,}).", soft_wrap=True,
+            f"{rendered['voxel_pixels']:g} render pixels (--level-of-detail.render-budget {job.settings.level_of_detail.render_budget:,}).", soft_wrap=True,
         )
     if result.focal_scales:
         scales = sorted(result.focal_scales.values())

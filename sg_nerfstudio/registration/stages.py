@@ -5,15 +5,15 @@ dataparser frame (about `update_centre`), render the model and compare with the 
 aggregate the per-photo losses robustly (`robust.RobustAggregator`, LTS by default), add the keypoint anchors' term
 where there are anchors, take an Adam step (`robust_step`) and record what happened (`schedules.History`).
 
-The stages a registration runs (`optimize.register`): the coarse `pyramid` stages (`coarse_stages`), the main stage,
+The stages a registration runs (`optimize.register`): the coarse-to-fine stages (`coarse_stages`), the main stage,
 and the refine stage with its own descriptor (`refine_stages`). Transforms are numpy Sim3s meta -> dataparser.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
-from typing import Callable, Optional
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 import torch
@@ -22,12 +22,14 @@ from torch import Tensor
 from sg_nerfstudio.features import teacher_input_size
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.registration.keypoints import Anchoring, KeypointTerm
 from sg_nerfstudio.registration.objectives import PhotoLosses, build_objective, objective_teacher_config, prepare_photos, refine_settings
 from sg_nerfstudio.registration.reference import ReferenceModel
 from sg_nerfstudio.registration.robust import RobustAggregator, TrimmingRule
 from sg_nerfstudio.registration.schedules import History, RetrimSchedule
 from sg_nerfstudio.registration.settings import RegistrationSettings
+
+if TYPE_CHECKING:  # the anchored start builds on the stages; they only take its anchors
+    from sg_nerfstudio.registration.anchored_start import Anchoring, KeypointTerm
 
 Array = np.ndarray
 
@@ -59,7 +61,7 @@ def optimise_stage(
     start = start_ns.to_torch()
     centre = torch.from_numpy(update_centre(meta, start_ns, settings))
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-    optimizer = torch.optim.Adam([delta], lr=stage.lr, eps=settings.adam_eps)
+    optimizer = torch.optim.Adam([delta], lr=stage.lr, eps=settings.optimiser.adam_eps)
     gamma = (stage.lr_final / stage.lr) ** (1.0 / max(stage.steps, 1)) if stage.lr_final else 1.0
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
     batches = RetrimSchedule(len(losses.photos), settings, aggregator.warmup_steps)
@@ -97,12 +99,12 @@ def robust_step(
 
 def warmup_steps(settings: RegistrationSettings, steps: int) -> int:
     """Steps of a `steps`-step stage in which every photo counts before the robust rule trims (`trim_after`)."""
-    return int(round(settings.trim_after * steps))
+    return int(round(settings.robust.trim_after * steps))
 
 
 def update_centre(meta: MetaImage, transform: Sim3, settings: RegistrationSettings) -> Array:
-    """[3] the point (dataparser frame) the update rotates and scales about (`settings.update_centre`)."""
-    return meta.look_at_under(transform) if settings.update_centre == "look-at" else meta.centroid_under(transform)
+    """[3] the point (dataparser frame) the update rotates and scales about (`settings.optimiser.update_centre`)."""
+    return meta.look_at_under(transform) if settings.optimiser.update_centre == "look-at" else meta.centroid_under(transform)
 
 
 def current_estimate(delta: Tensor, centre: Tensor, start: Sim3) -> Sim3:
@@ -132,18 +134,18 @@ def objective_with_anchors(losses: PhotoLosses, start_ns: Sim3, settings: Regist
 
 def uses_anchors(settings: RegistrationSettings, anchored: bool) -> bool:
     """Whether keypoint anchors hold the pose: the meta-image has them (`anchored`) and the settings weigh them."""
-    return anchored and settings.keypoint_weight > 0
+    return anchored and settings.anchors.weight > 0
 
 
 def refines(settings: RegistrationSettings, anchored: bool) -> bool:
-    """Whether the refine stage runs: `refine_steps` > 0, and the meta-image has no keypoint anchors unless
-    `refine_anchored`."""
-    return settings.refine_steps > 0 and (settings.refine_anchored or not uses_anchors(settings, anchored))
+    """Whether the refine stage runs: `last_stage.steps` > 0, and the meta-image has no keypoint anchors unless
+    `last_stage.with_anchors`."""
+    return settings.last_stage.steps > 0 and (settings.last_stage.with_anchors or not uses_anchors(settings, anchored))
 
 
 def refine_stages(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings, near_plane: float, anchored: bool, main: Stage) -> list[Stage]:
     """[] or the refine stage: `refine_settings` (its own teacher and photo targets unless it is the main stage's),
-    `refine_steps` from `refine_lr` decaying to `lr_final`."""
+    `last_stage.steps` from `last_stage.lr` decaying to `optimiser.lr_final`."""
     if not refines(settings, anchored):
         return []
     own = refine_settings(settings)
@@ -152,7 +154,7 @@ def refine_stages(reference: ReferenceModel, meta: MetaImage, settings: Registra
     else:
         objective = build_objective(reference, own)
         losses = PhotoLosses(reference, prepare_photos(reference, meta, own, objective), objective, own, near_plane)
-    return [Stage(f"refine-{losses.objective.teacher_config.name}", losses, settings.refine_steps, settings.refine_lr, settings.lr_final)]
+    return [Stage(f"refine-{losses.objective.teacher_config.name}", losses, settings.last_stage.steps, settings.last_stage.lr, settings.optimiser.lr_final)]
 
 
 MIN_COARSE_GRID = 8
@@ -161,16 +163,16 @@ of a photo matches almost any pose: on the tiny test scene such a stage sent a s
 
 
 def coarse_stages(reference: ReferenceModel, meta: MetaImage, settings: RegistrationSettings, near_plane: float) -> list[Stage]:
-    """The `pyramid` stages, coarsest first: the teacher at its input size divided by each factor (cells that
+    """The coarse-to-fine stages, coarsest first: the teacher at its input size divided by each factor (cells that
     many times larger in the photo), the learning rate multiplied by it and decaying tenfold within the stage."""
     stages = []
     main_size = teacher_input_size(objective_teacher_config(reference, settings))
-    for factor in sorted(settings.pyramid, reverse=True):  # each >= 2 (settings.check_ranges, run by `register`)
-        stage_settings = replace(settings, teacher_input_size=main_size // factor)
+    for factor in sorted(settings.coarse_to_fine.factors, reverse=True):  # each >= 2 (settings.check_ranges, run by `register`)
+        stage_settings = settings.changed(objective={"teacher_input_size": main_size // factor})
         objective = build_objective(reference, stage_settings)
         if objective.teacher.grid_size < MIN_COARSE_GRID:
             continue
         photos = prepare_photos(reference, meta, stage_settings, objective)
-        lr = settings.lr * factor
-        stages.append(Stage(f"coarse-{main_size // factor}", PhotoLosses(reference, photos, objective, stage_settings, near_plane), settings.pyramid_steps, lr, lr / 10))
+        lr = settings.optimiser.lr * factor
+        stages.append(Stage(f"coarse-{main_size // factor}", PhotoLosses(reference, photos, objective, stage_settings, near_plane), settings.coarse_to_fine.steps, lr, lr / 10))
     return stages

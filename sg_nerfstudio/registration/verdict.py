@@ -1,79 +1,31 @@
 """A verdict per registration — `registered`, `uncertain` or `failed` — from evidence that needs no ground truth.
 
-After the optimisation the frozen model is rendered at 12 *probes* around the result: the Sim(3) rotated by
-±h_r about each axis and shifted by ±h_t along each axis of the dataparser frame, about the centroid of
-the moved cameras. h_r is one teacher cell's angle (the photos' median long-side field of view / the
-teacher grid) and h_t the distance that moves a point at the photos' median sparse-point depth by the same
-angle, so every probe shifts the image by about one descriptor cell. Evidence:
+After the optimisation the frozen model is rendered at 12 *probes* around the result: the Sim(3) turned by one teacher
+cell's angle about each axis and shifted by the distance that moves a point at the photos' median depth as much, both
+ways. A result that found the model sits in a minimum the descriptor resolves and that most photos share; one that sees
+the wrong thing sits on a plateau that few photos agree with. `Evidence` lists what is measured; docs/verdict.md says
+what each piece of evidence means and how the thresholds were chosen.
 
-- `sharpness`: the median over probes of the robust objective's relative rise (T_probe - T) / T, with T the
-  trimmed mean of the per-photo losses (the robust rule of the registration). A registration that found
-  the model sits in a minimum the descriptor resolves; one that sees the wrong thing sits on a plateau.
-- `flattest_rise`: the smallest of those rises; below `DESCENT_TOLERANCE` a probe is better than the result
-  (the optimisation stopped on a slope, not in a minimum).
-- `agreeing_photos`: photos that are at their own minimum (median rise of their own loss over the probes
-  at least `PHOTO_RISE`) and that the model covers (at least `PHOTO_COVERAGE` of the render). Occluded or
-  wrong photos do not agree; a wrong result has few photos that agree.
-- `objective_drop`: 1 - T_final / T_initial (reported, not used: a good start has little to gain).
-- `keypoint_error_cells`, `keypoint_photos`, `keypoint_scale_motion_px`, `keypoint_error_px` (with keypoint anchors
-  only, registration/keypoints.py): the median reprojection error of the anchors at the result, in teacher cells, how
-  many photos have anchors, and how far a 2% scale change moves the anchors against their median error, in pixels
-  (`KeypointTerm.scale_motion_px`). The anchors are RANSAC-verified matches of the photos against the reference's own
-  images: when they reproject within `ANCHORS_HOLD_CELLS` at the result and fix the scale (the motion exceeds the
-  error: not one photo's anchors, nor those of photos taken from one spot), they fix the pose where the dense
-  objective is shallow (a reference of few views or points), so a shallow minimum alone does not make it uncertain.
-- `depth_log_ratio`, `depth_agreeing`, `depth_points` (registration/depth_agreement.py): the median log ratio of
-  the reference's rendered depth to the meta-image's own sparse points' depth at the result, the share of
-  points within 10%, and how many the model covers. A wrong scale or depth shows there (0.1 for 10%), but most
-  inaccurate results of the benchmark (3 of wide-cpu's 5 from 30°) were rotations that keep the depths (docs/
-  measurements.md "Depth agreement"), so it only supports a result: where at least `DEPTH_HOLDS_SHARE` of at least
-  `DEPTH_HOLDS_POINTS` points agree (*the depths hold*), the meta-image's own geometry lies on the reference's surface
-  and a shallow minimum alone does not make the result uncertain, as with anchors that hold. Without anchors (the dense
-  objective alone) on references of every third photo, 11 accurate real-photo results were uncertain for a minimum of
-  2.2-4.9% one cell away alone; the depths held on 10 of them, on 2 of the 5 near misses (3-6° off) uncertain for that
-  alone (turns that keep the depths), and on none of the 4 outliers with a minimum that shallow and half the photos
-  agreeing (docs/measurements.md "A shallow minimum whose depths hold").
-- `scale_rise`, `scale_probe` (only when the keypoint anchors left the scale free and the registration searched it,
-  `scale_search.scale_the_anchors_leave_free`): the 12 probes above keep the anchored photos' images where the anchors put
-  them and so cannot show a wrong scale; two more scale the Sim(3) by 1 ± `scale_probe` about the anchored photos' mean
-  camera centre, sized to move the other photos' cameras by the translation probe's distance (median), and
-  `scale_rise` is the smaller relative rise of those other photos' robust objective there. Below `FAILED_SHARPNESS`
-  (flat, as the 12 probes' median must not be) the scale rests on nothing the descriptor resolves, or a probe descends:
-  uncertain. The anchors hold the other six degrees of freedom, so a shallow rise above it is accepted as a shallow
-  minimum is with anchors that hold (real twin pairs: 2.9-3.5% at ±5.5% on fountain3 0005-0008, accurate).
-- `camera_fit_refused` (with keypoint anchors and a camera fit, registration/keypoints.py): why the fit of the photos'
-  focal lengths, k1 and poses to the anchors was not kept (`camera_fit.beyond_limits`), None when it was. The anchors then
-  asked a photo to turn more than 2°, or a focal length to change more than 20%: more than an SfM of a few photos errs
-  by, so the meta-image's own cameras disagree with the reference. A single Sim(3) of such a model is in doubt:
-  `uncertain`. On this machine's benchmarks every such refusal came from a meta-image whose own SfM was poor (13 of 13:
-  OPENCV models of 3-5 photos and one broken model), and none of 82 fits on SIMPLE_RADIAL and RADIAL ones (docs/
-  measurements.md "A refused camera fit as verdict evidence").
-- `other_minimum_rise`, `other_minimum_cells` (registrations without keypoint anchors, not `failed` on the rest of the
-  evidence; registration/other_minimum.py): the look beyond the probes for a second minimum, e.g. one window along a
-  facade of identical windows, where the probes above see a sharp minimum agreed by every photo. Its relative rise over
-  the result and its distance in probes; None when the look found none (or did not run).
-- `hypothesis_margin` (with `hypotheses` only): how much higher, relative to the winner, the objective ended
-  for the best optimised hypothesis that finished elsewhere (more than 2° away); reported, not used.
+Rule: `failed` when too few photos agree or the objective is flat. `registered` when enough photos agree, the minimum
+is sharp (or shallow but held by keypoint anchors or by the meta-image's own depths), no probe descends, no photo
+contradicts the result, the anchors (if any) reproject close, no camera fit was refused, no other minimum lies close
+and the scale (where the anchors left it free) is seen. `uncertain` otherwise, with the reasons.
 
-Rule (thresholds calibrated on generated scenes, see README "Verdict"): `failed` when fewer than
-`FAILED_AGREEING` of the photos agree or the objective is flat (sharpness below `FAILED_SHARPNESS`);
-`registered` when at least `REGISTERED_AGREEING` agree, sharpness is at least `REGISTERED_SHARPNESS` (or the
-anchors hold, or the depths hold, above), no probe descends, no photo contradicts the result and, where there are anchors, they
-reproject within `ANCHORS_HOLD_CELLS` and no camera fit was refused, and no other minimum lies within
-`OTHER_MINIMUM_MARGIN` of the result (or below it); `uncertain` otherwise.
+| threshold | value | meaning |
+|---|---|---|
+| `FAILED_AGREEING` | 1/3 | fewer photos than this share agree: failed |
+| `FAILED_SHARPNESS` | 1.5% | the objective rises less one cell away: flat, failed (and a free scale not seen: uncertain) |
+| `REGISTERED_AGREEING` | 1/2 | at least this share of photos agree to register |
+| `REGISTERED_SHARPNESS` | 5% | the rise one cell away a registered minimum needs (unless anchors or depths hold it) |
+| `DESCENT_TOLERANCE` | -0.5% | a probe lower than the result by more: not converged |
+| `PHOTO_RISE` | 2% | a photo agrees when its own loss rises this much at the median probe; contradicts when it falls this much |
+| `PHOTO_COVERAGE` | 25% | ... and the model covers at least this share of its render |
+| `ANCHORS_HOLD_CELLS` | 0.25 | anchors hold when their median reprojection error is within this many teacher cells |
+| `DEPTH_HOLDS_SHARE` | 60% | the depths hold when this share of the meta-image's sparse points lie within 10% of the rendered depth |
+| `DEPTH_HOLDS_POINTS` | 50 | ... of at least this many covered points |
+| `other_minimum.MARGIN` | 5% | another minimum less than this much higher than the result: uncertain |
 
-Three of these read a contradiction rather than a lack of support (docs/measurements.md "A broken meta-image and the
-verdict", "A refused camera fit as verdict evidence"):
-- *a photo contradicts the result* when the model covers it (`PHOTO_COVERAGE`, as for agreeing) and its own loss falls
-  at the median probe by more than `PHOTO_RISE`: the result sits near a maximum of that photo's loss, where an occluded
-  or unrelated photo reads flat;
-- *the anchors do not hold*: verified matches that reproject more than `ANCHORS_HOLD_CELLS` off (median) disagree with
-  the result, whatever the dense objective says;
-- *the camera fit was refused* (`camera_fit_refused` above): the meta-image's own cameras disagree with the anchors.
-For the first two: over the 838 results of the real-photo and synthetic benchmarks run with them, no accurate result had either: the
-lowest photo rise was -0.4% and the largest anchor error 0.17 cells. A 4-photo SfM model of Sceaux that no similarity
-fits (its truth's cameras 27-43° apart from it) had been called `registered` with two photos at -8.7% and -13.7% and
-its anchors at 0.36 cells. Frames: the transform is meta -> dataparser, as in `PhotoLosses`.
+Frames: the transform is meta -> dataparser, as in `PhotoLosses`.
 """
 
 from __future__ import annotations
@@ -90,7 +42,7 @@ from sg_nerfstudio.geometry.alignment import camera_centres
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.registration.depth_agreement import AGREEING_LOG_RATIO, DepthAgreement
-from sg_nerfstudio.registration.keypoints import anchors_fix_scale
+from sg_nerfstudio.registration.anchored_start import anchors_fix_scale
 from sg_nerfstudio.registration.other_minimum import MARGIN as OTHER_MINIMUM_MARGIN
 from sg_nerfstudio.registration.robust import TrimmingRule
 
@@ -99,21 +51,26 @@ Label = Literal["registered", "uncertain", "failed"]
 SEVERITY = {"registered": 0, "uncertain": 1, "failed": 2}
 
 PHOTO_RISE = 0.02
+"""A photo's own loss rising this much at the median probe puts it at its minimum (falling as much: it contradicts)."""
 PHOTO_COVERAGE = 0.25
+"""A photo agrees or contradicts only where the model covers this share of its render (an empty render reads flat)."""
 DESCENT_TOLERANCE = -0.005
+"""A probe lower than the result by more than this (relative): the optimisation stopped on a slope, not in a minimum."""
 FAILED_AGREEING = 1 / 3
+"""Fewer agreeing photos than this share: failed. Calibrated on generated scenes (docs/verdict.md)."""
 FAILED_SHARPNESS = 0.015
+"""A rise of the objective below this one cell away is a plateau: failed. Calibrated on generated scenes (docs/verdict.md)."""
 REGISTERED_AGREEING = 0.5
+"""A registered result needs at least this share of its photos agreeing (the median rule counts half of them)."""
 REGISTERED_SHARPNESS = 0.05
-ANCHORS_HOLD_CELLS = 0.25  # chosen, not calibrated: anchored results sit at 0.02-0.17 cells, a pose 3° off at several
+"""A registered minimum rises at least this much one cell away, unless anchors or depths hold it. Calibrated on generated
+scenes (docs/verdict.md)."""
+ANCHORS_HOLD_CELLS = 0.25
+"""Chosen, not calibrated: anchored results sit at 0.02-0.17 cells, a pose 3° off at several."""
 DEPTH_HOLDS_SHARE = 0.6
-"""The depths hold when at least this share of the meta-image's covered sparse points lie within 10% of the reference's
-rendered depth (`depth_agreement.AGREEING_LOG_RATIO`). Chosen, not calibrated: accurate real-photo results without
-anchors read a median of 93% and a 10th percentile of 70%; an outlier of the synthetic suite (11.8° off, its minimum
-3.6% deep, half its photos agreeing, another minimum 23% lower) read 49%, the real outliers that shallow 3-9%."""
+"""Chosen, not calibrated: accurate real-photo results without anchors read a median of 93% (10th percentile 70%), outliers 3-49%."""
 DEPTH_HOLDS_POINTS = 50
-"""...and at least this many points are covered (chosen, not calibrated: a handful agree by chance; accurate real-photo
-results cover 74-2289)."""
+"""Chosen, not calibrated: a handful of points agree by chance; accurate real-photo results cover 74-2289."""
 
 
 @dataclass

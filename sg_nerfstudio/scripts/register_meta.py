@@ -2,7 +2,7 @@
 
     ns-register-meta --load-config outputs/.../config.yml --meta-image scene/meta/front \\
         --output-dir registrations [--init identity|colmap|generalized|init.json] \\
-        [--gt scene/meta/front/gt_transform.json] [--config fast-cpu] [--steps 400 ...]
+        [--gt scene/meta/front/gt_transform.json] [--config fast-cpu] [--optimiser.steps 400 ...]
 
 `--config` names a registration preset (paper, fast-cpu, fast-cpu-features) or a YAML file of the settings;
 flags override single settings. Without it the preset follows the device (`paper` on CUDA, a CPU preset
@@ -40,7 +40,7 @@ def parse_args(argv: list[str], console: Console) -> RegistrationJob:
         console.print(f"Registration preset: {preset} (no --config given; chosen for this device and reference).")
     settings = load_preset(preset) if preset else RegistrationSettings()
     default = RegistrationJob(load_config=tyro.MISSING, meta_image=tyro.MISSING, output_dir=tyro.MISSING, config=preset, settings=settings)
-    return cli.parse(RegistrationJob, args=argv, default=default, prog="ns-register-meta", config=(tyro.conf.OmitArgPrefixes,))
+    return cli.parse(RegistrationJob, args=argv, default=default, prog="ns-register-meta")
 
 
 def main(argv: Optional[list[str]] = None) -> int:

@@ -11,7 +11,7 @@ import numpy as np
 
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.registration.keypoints import SCALE_RESOLUTION, Anchoring, anchors_fix_scale
+from sg_nerfstudio.registration.anchored_start.anchors import SCALE_RESOLUTION, Anchoring, anchors_fix_scale
 from sg_nerfstudio.registration.objectives import PhotoLosses
 from sg_nerfstudio.registration.robust import TrimmingRule
 from sg_nerfstudio.registration.settings import RegistrationSettings
@@ -28,20 +28,15 @@ around the best, 0.08 of a log unit on either side (SCALE_RESOLUTION, 2%, apart)
 def scale_the_anchors_leave_free(
     losses: PhotoLosses, anchor: Anchoring, meta: MetaImage, transform: Sim3, settings: RegistrationSettings,
 ) -> tuple[Sim3, Optional[dict]]:
-    """When the keypoint anchors do not fix the Sim(3)'s scale (`keypoints.anchors_fix_scale`: the anchors of one photo,
-    or of photos taken from nearly one spot) and some photos have none, the Sim(3) (meta -> dataparser) scaled about
-    the anchored photos' mean camera centre by the factor the main stage's objective prefers; otherwise `transform`.
+    """When the keypoint anchors do not fix the Sim(3)'s scale (`anchors_fix_scale`: one photo's anchors, or those of
+    photos taken from nearly one spot) and some photos have none, the Sim(3) (meta -> dataparser) scaled about the
+    anchored photos' mean camera centre by the factor the main stage's objective prefers; otherwise `transform`.
 
-    Scaling the world about a camera's centre leaves that camera's image unchanged, so one photo's anchors fix 6 of the
-    Sim(3)'s 7 degrees of freedom and leave the scale where the start put it (measured on 19 real 3-5-photo meta-images
-    with the anchors of one photo kept: ΔT grew with the start's scale error, median 0.033 / 0.096 / 0.186 scene units
-    from 5% / 15% / 30% scale errors, while ΔR stayed at 0.1-0.6°); so do the anchors of a photo and its zoomed twin
-    taken from the same spot. The other photos do see the scale: their cameras move along the rays from the anchored
-    ones. The search scores factors (SCALE_SEARCH) by the robust objective of those photos plus the keypoint term,
-    weighted as a stage weighs it (about one photo's centre that term does not change). The anchored photos' own losses
-    do not change either, and counted with the others they would fill the trimmed mean's kept half (their renders fit
-    best) and hide the scale from it: the anchors of a photo and its zoomed twin in a 4-photo meta-image left the
-    search flat. Returns the best, with a record of the search."""
+    Scaling the world about a camera's centre leaves that camera's image unchanged, so such anchors fix 6 of the 7
+    degrees of freedom; the other photos see the scale (their cameras move along the rays from the anchored ones). The
+    search scores factors (SCALE_SEARCH) by the robust objective of those other photos only (the anchored ones' renders
+    do not change and would fill the trimmed mean's kept half) plus the keypoint term weighed as a stage weighs it.
+    Returns the best, with a record of the search."""
     term = anchor.term(losses.objective.teacher.grid_size, 1.0) if anchor else None
     if not term or term.photos >= len(meta.photos):
         return transform, None

@@ -1,25 +1,18 @@
-"""The camera fit: the meta-image's own cameras fitted to the keypoint anchors together with the Sim(3).
+"""The camera fit: the meta-image's own cameras fitted to the keypoint anchors together with the Sim(3), render-free.
 
-After the render-free pre-alignment on the anchors (keypoints.py, `Anchoring.prealign`), a 3-photo SfM model's focal
-lengths can still be a few percent off, its relative poses a fraction of a degree and its k1 a few hundredths; the
-Sim(3) cannot absorb any of them. `fit_cameras` then fits, with the Sim(3):
-- with `refine_focal`, one focal-length scale per COLMAP camera: the anchors then project with each photo's focal
-  length times its scale, and every stage after it renders with those focal lengths (`Photo.focal_scale`);
-- with `refine_photo_poses`, each photo's camera inside the meta-image by a small rotation and centre shift, each held
-  by a prior (`KeypointTerm.pose_sigma`): the SfM of a few photos gets their relative poses a fraction of a degree
-  wrong, and a rigid fit spreads that error into the Sim(3);
-- with `refine_distortion`, each camera's first radial coefficient k1, the keypoints of those cameras then compared in
-  the distorted photo (`KeypointTerm.distorted_errors`); later stages compare renders with the photos undistorted again
-  with it.
-Later stages render the moved cameras, and the registration reports the Sim(3) that maps the meta-image's own cameras
-onto the moved ones (`geometry.alignment.align_cameras`, the rule the ground truth of the benchmarks is made by)
-composed with the final one.
-
-Two solvers: the *prior fit* (`fit_jointly`, Levenberg-Marquardt on the anchors alone, each camera parameter held by
-the SfM's own uncertainty at the keypoints' noise) and, with `camera_fit: adjustment` (fast-cpu), one pycolmap bundle
-adjustment of the meta-image's own tracks with the anchors (anchored_adjustment.py), which `fit_cameras` chooses where
-it applies. A fit that asks more of the cameras than an SfM of a few photos plausibly errs by (`beyond_limits`) is
-refused and reported to the verdict (`CameraFit.refused`). Frames: as keypoints.py (transforms meta -> dataparser).
+An SfM of a few photos gets focal lengths a few percent wrong, relative poses a fraction of a degree and k1 a few
+hundredths; one Sim(3) cannot absorb any of them, and a dense alignment then spreads the error over the group.
+`fit_cameras` frees, with the Sim(3), what `settings.camera_fit` asks: one focal scale per COLMAP camera (`focal`), each
+photo's pose by a small rotation and centre shift (`photo_poses`), each camera's k1 (`distortion`). Two solvers, for two
+models of the same fit:
+- the *prior fit* (`fit_jointly`): the anchors alone, each parameter held by the SfM's own uncertainty of it at the
+  keypoints' noise; Levenberg-Marquardt (least_squares.py). It works for any camera model and any anchors;
+- the *adjustment* (bundle_adjustment.py, `solver: adjustment`): pycolmap's bundle adjuster on the meta-image's own
+  tracks with the anchors as constant points, which moves focal length, depth, k1 and orientation together as the SfM's
+  correlations allow. It needs anchors that fix the scale and cameras with at most k1; elsewhere the prior fit runs.
+A fit that asks more of the cameras than an SfM of a few photos errs by (`beyond_limits`) is refused; the refusal is
+verdict evidence (`CameraFit.refused`). Later stages render the moved cameras, and the registration reports the final
+Sim(3) composed with the one that maps the given cameras onto the moved ones. Frames: as anchors.py.
 """
 
 from __future__ import annotations
@@ -33,25 +26,23 @@ from torch import Tensor
 
 from sg_nerfstudio.geometry.meta_image import intrinsics_uncertainty, radial_k1_index, relative_rotation_uncertainty
 from sg_nerfstudio.geometry.sim3 import Sim3
-from sg_nerfstudio.registration.anchored_adjustment import adjust_with_anchors, adjustable, pose_changes
-from sg_nerfstudio.registration.keypoints import (
+from sg_nerfstudio.registration.anchored_start.bundle_adjustment import adjust_with_anchors, adjustable, pose_changes
+from sg_nerfstudio.registration.anchored_start.anchors import (
     FIT_KERNEL_FRACTION, KERNEL_CELLS, Anchoring, FreeCameras, KeypointTerm, corrected_rotations_and_centres,
 )
-from sg_nerfstudio.registration.least_squares import RobustResiduals, levenberg_marquardt
+from sg_nerfstudio.registration.anchored_start.least_squares import RobustResiduals, levenberg_marquardt
 
 
 MAX_FOCAL_CHANGE = 0.2
-"""A fitted focal scale outside [1 / (1 + this), 1 + this] is not believed: the focal fit is dropped (every photo keeps
-its SfM focal length and the pose stays the pre-aligned one)."""
+"""A fitted focal scale outside [1 / (1 + this), 1 + this] is not believed (an SfM focal length is rarely 20% off): the
+fit is refused."""
 
 MAX_K1_CHANGE = 0.2
-"""A fitted change of a camera's first radial coefficient beyond this is not believed (`refine_distortion`): the camera
-fit is dropped whole. Real lenses' k1 lies within about +-0.3; the 3-photo models' SfM put it 0.03-0.18 off."""
+"""A change of a camera's k1 beyond this is not believed (real lenses' k1 lies within about +-0.3): the fit is refused."""
 
 MAX_POSE_CHANGE_DEG = 2.0
-"""A photo's fitted pose correction (`refine_photo_poses`) beyond this rotation, or beyond a centre shift that moves its
-scene as much (its median point depth times the angle) plus the depth change its focal change implies (`implausibility`), is
-not believed: the camera fit is dropped whole."""
+"""A photo turned beyond this, or shifted beyond its median depth times this angle plus the depth change its focal change
+implies (`implausibility`), is not believed (an SfM's relative poses err by fractions of a degree): the fit is refused."""
 
 
 @dataclass
@@ -73,34 +64,18 @@ def fit_cameras(
     anchoring: Anchoring, start: Sim3, centre: np.ndarray, grid_size: int, iterations: int, focal: bool, pose_prior_scale: Optional[float],
     distortion: bool = False, adjustment: bool = False,
 ) -> CameraFit:
-    """The keypoint term of `anchoring` minimised over the Sim(3) *and* the meta-image's cameras, from `start` (best
-    already pre-aligned): with `focal`, one focal-length scale per COLMAP camera of the photos with keypoints (one per photo
-    where, as for Internet photos, each has its own); with `pose_prior_scale`, each such photo's pose by a small
-    rotation and centre shift under a prior of that times its SfM rotation uncertainty (`rotation_priors`,
-    `KeypointTerm.pose_sigma`), the keypoints then weighed with the narrower kernel of FIT_KERNEL_FRACTION. `start`
-    alone when a fitted scale is beyond MAX_FOCAL_CHANGE or a correction beyond MAX_POSE_CHANGE_DEG (keypoints that
-    cannot tell focal length from depth, or one photo from the others), or when nothing could be freed.
+    """The keypoint term of `anchoring` minimised over the Sim(3) (numpy, meta -> dataparser; `start` best pre-aligned)
+    *and* the meta-image's cameras: with `focal`, one focal scale per COLMAP camera of the photos with keypoints; with
+    `pose_prior_scale`, each such photo's pose under a prior of that times its SfM rotation uncertainty (the keypoints then
+    weighed with the narrower FIT_KERNEL_FRACTION kernel); with `distortion`, each radial camera's k1. Each parameter is
+    held by the SfM's own uncertainty at the keypoints' noise (`intrinsics_priors`, `rotation_priors`): what the SfM fixed
+    well barely moves. Every photo of a refined camera renders with it; photos without keypoints keep their pose.
 
-    A 3-photo SfM model's focal lengths can be a few percent off and its relative poses a fraction of a degree
-    (docs/measurements.md "Per-photo focal lengths", "Per-photo poses"); the Sim(3) cannot absorb either, and an image-based
-    alignment then places each camera nearer or farther, or turns the whole group to split one photo's error. Each
-    focal length's prior is the SfM's own uncertainty at the keypoints' noise (`intrinsics_priors`): a focal length the
-    SfM fixed well (many photos) barely moves, a poorly fixed one follows the keypoints; cameras whose uncertainty
-    cannot be estimated keep theirs, and so do photos whose orientation uncertainty cannot be. Every photo of a refined
-    camera, keypoints or not, renders with it (as the aligned model's camera); photos without keypoints keep their
-    pose. With `distortion`, each camera of RADIAL_MODELS also fits its first radial coefficient k1 under the SfM's
-    own uncertainty of it, also at the keypoints' noise (the keypoints compared in the distorted photo,
-    `KeypointTerm.distorted_errors`): a 3-photo model's k1 can be off by a few hundredths, which moves its cameras
-    along their axes as a wrong focal length does.
-
-    With `adjustment` (and `pose_prior_scale` given: the photos' poses are fitted), where every camera's model has at
-    most k1 (`anchored_adjustment.adjustable`) and the anchors fix the scale (`anchors_fix_scale` at `start`), the fit
-    is instead one bundle adjustment of the meta-image's own observations with the anchors (`anchored_adjustment`):
-    no priors, every photo moved, `pose_prior_scale` unused. Anchors of one photo, or of photos taken from one spot,
-    leave the model's scale about them free, a direction the adjuster would end anywhere along (fountain-P11
-    0005-0008 with one photo's anchors: 0.90 and 0.99 of the truth's scale from starts at 1.00 and 1.10); the prior
-    fit moves only the anchored photos and the registration then searches that scale
-    (`scale_search.scale_the_anchors_leave_free`)."""
+    With `adjustment` (and poses fitted), where every camera has at most k1 (`bundle_adjustment.adjustable`) and the
+    anchors fix the scale (`Anchoring.fix_scale`), the fit is the bundle adjustment instead (`adjusted_cameras`): anchors
+    of one photo, or of photos from one spot, leave the scale a direction the adjuster would end anywhere along; there
+    the prior fit moves only the anchored photos and the registration searches the scale (`scale_search`). `start` alone
+    when nothing could be freed or the fit diverged; refused (`CameraFit.refused`) beyond the limits."""
     if adjustment and pose_prior_scale is not None and adjustable(anchoring.meta) and anchoring.fix_scale(start, grid_size):
         return adjusted_cameras(anchoring, start, focal, distortion)
     kernel = FIT_KERNEL_FRACTION * grid_size if pose_prior_scale is not None else KERNEL_CELLS
@@ -139,13 +114,11 @@ def fit_cameras(
 
 
 def adjusted_cameras(anchoring: Anchoring, start: Sim3, focal: bool, distortion: bool) -> CameraFit:
-    """`fit_cameras` by `anchored_adjustment.adjust_with_anchors` from `start` (numpy Sim3, meta -> dataparser); `start`
-    alone when the adjuster fails or moves a camera beyond what `implausibility` allows the prior fit (a focal change
-    beyond MAX_FOCAL_CHANGE, a k1 change beyond MAX_K1_CHANGE, a turn beyond MAX_POSE_CHANGE_DEG or a centre shift
-    beyond its depth times that angle plus the meta-image's largest focal change). The largest, not the photo's own:
-    the adjusted model is compared with the given one after the Sim(3) that best maps one onto the other, which
-    spreads one photo's depth change over all of them (fountainocc 0005-0009: a focal length 13% shorter moved the
-    two photos whose focal lengths stayed within 1.3% by 5.5% and 7.4% of their depth)."""
+    """`fit_cameras` by `bundle_adjustment.adjust_with_anchors` from `start` (numpy Sim3, meta -> dataparser); `start`
+    alone when the adjuster fails; refused when it moves a camera beyond the prior fit's limits (`beyond_limits`). The
+    centre-shift allowance takes the meta-image's largest focal change, not the photo's own: the adjusted model is
+    compared with the given one after the Sim(3) that maps one onto the other, which spreads one photo's depth change
+    over all of them."""
     adjusted = adjust_with_anchors(anchoring.meta, anchoring.keypoints, anchoring.world_to_dataparser, start, focal, distortion, FIT_KERNEL_FRACTION)
     if adjusted is None:
         return CameraFit(start)
@@ -176,17 +149,9 @@ def rotation_priors(anchoring: Anchoring, scale: float) -> dict[str, float]:
 
 def intrinsics_priors(anchoring: Anchoring, kernel_fraction: float) -> tuple[dict[int, float], dict[int, float]]:
     """({COLMAP camera id: prior relative standard deviation of its focal length}, {camera id: prior standard deviation
-    of its k1}): the meta-image SfM's own uncertainties (`intrinsics_uncertainty`, at 1 px of noise) at the noise as
-    which a fit under the Cauchy kernel of `kernel_fraction` of the long side weighs the keypoints
-    (`keypoint_noise_px`), as `rotation_priors` holds the poses.
-
-    Held at 1 px against keypoints weighed as 2.8-3.5 px (photos of 640-800 px), the priors counted 8-12 times the
-    information the SfM had. Measured on the 13 real 3-5-photo meta-images of Strecha's fountain-P11 in
-    docs/measurements.md (laser-calibrated intrinsics, no distortion; colmap starts): of the SfM focal-length error
-    of the 16 photos more than 3% off, the fit removed 55% on average before and 73% at the keypoints' noise; |k1|
-    went 0.016 -> 0.011 (worst 0.100 -> 0.030), ΔT 0.027 -> 0.017 mean (closer on 7, further on none), ΔR 0.22 ->
-    0.18° ("The camera fit's priors at the keypoints' noise"). On small photos the priors tighten instead (48-px test
-    photos: 0.5 px)."""
+    of its k1}): the meta-image SfM's own uncertainties (`intrinsics_uncertainty`, at 1 px of noise) scaled to the noise
+    as which a fit under the Cauchy kernel of `kernel_fraction` of the long side weighs the keypoints
+    (`keypoint_noise_px`), as `rotation_priors` holds the poses: prior and keypoints then speak of the same noise."""
     focal, k1 = intrinsics_uncertainty(anchoring.meta.reconstruction)
     cameras = anchoring.meta.reconstruction.cameras
     noise = {camera_id: keypoint_noise_px(max(camera.width, camera.height), kernel_fraction) for camera_id, camera in cameras.items()}
@@ -216,14 +181,11 @@ def fit_jointly(
     k1: Optional[tuple[Tensor, Tensor]] = None,
 ) -> Optional[tuple[Sim3, FreeCameras]]:
     """Levenberg-Marquardt (`least_squares.levenberg_marquardt`, at most `iterations`) on delta [7] about `centre` and,
-    with `focal` ([G] prior sigmas, [G] bool free), the log focal scales of the term's cameras marked free, with
-    `pose_sigma` [P', 6] the photos' pose corrections (in units of their prior), with `k1` ([G] prior sigmas, [G] bool
-    free) the changes of the cameras' first radial coefficients, each under its prior: (the numpy Sim3 meta ->
-    dataparser, the fitted `FreeCameras`, focal scales and k1 changes 0 where not free); None when the optimisation
-    diverged. From a pre-aligned start the problem is smooth and small (7 + G + 6 P' + G parameters) but
-    ill-conditioned (a common turn of every photo against the Sim(3), focal length against depth): L-BFGS had not
-    converged in 1000 iterations on the real-photo meta-images, and its end point moved with the last digits of the
-    priors (docs/measurements.md "The camera fit, solved by Levenberg-Marquardt")."""
+    with `focal` ([G] prior sigmas, [G] bool free), the log focal scales of the cameras marked free, with `pose_sigma`
+    [P', 6] the photos' pose corrections (in units of their prior), with `k1` ([G] prior sigmas, [G] bool free) the
+    changes of the cameras' k1, each under its prior: (the numpy Sim3 meta -> dataparser, the fitted `FreeCameras`); None
+    when it diverged. The problem is small and smooth but ill-conditioned (focal length against depth, a common turn
+    of every photo against the Sim(3)): a Gauss-Newton method converges where first-order ones did not."""
     base = start.to_torch()
     centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
     cameras, photos = len(term.camera_ids), term.photos
@@ -269,12 +231,10 @@ def beyond_limits(focal_scales: list[float], k1_changes: list[float], turns_deg:
 
 def implausibility(free: FreeCameras, camera_of: Tensor) -> str:
     """`beyond_limits` of fitted cameras ("" when they are plausible): their focal scales, k1 changes and pose
-    corrections (`camera_of` [P'] each photo's index into the cameras). A photo's centre
-    shift is compared with its median point depth times MAX_POSE_CHANGE_DEG plus the depth change its camera's focal
-    change implies (depth x |log focal scale|): a photo whose SfM focal length was wrong by some percent stood as many
-    percent nearer or farther from a facade in the SfM, and the fit must move it by that much to keep its image (Strecha
-    fountain 0005, SfM focal length 11% long: the fit's 6% shorter focal length and 6% shift were refused with the
-    angle alone)."""
+    corrections (`camera_of` [P'] each photo's index into the cameras). A photo's centre shift is compared with its
+    median point depth times MAX_POSE_CHANGE_DEG plus the depth change its camera's focal change implies
+    (depth x |log focal scale|): a photo whose SfM focal length was some percent off stood as many percent nearer or
+    farther in the SfM, and the fit must move it by that much to keep its image."""
     focal = torch.exp(free.log_focal).tolist() if free.log_focal is not None else []
     k1 = free.k1_delta.tolist() if free.k1_delta is not None else []
     turns, shifted = [], False

@@ -1,35 +1,19 @@
-"""Keypoint anchors: the initialiser's verified SIFT correspondences as a reprojection term of the registration.
+"""Keypoint anchors: the SIFT initialisers' verified 2D-3D matches with the reference as a reprojection term.
 
-The dense objective compares renders of the frozen model with the photos on a coarse teacher grid (32 cells on
-the long side for the CPU presets). On real photographs its minimum is not exactly at the ground truth: the
-reference renders blur and distort what six training photos did not see, and the descriptor pools 8-pixel
-cells of a 256-pixel image. A SIFT start is the opposite: its keypoints are located to a pixel of the full
-photo against points triangulated from the reference's *photos*, but it fits each photo on its own and needs
-texture. Measured on the real-photo scenes (docs/measurements.md "Real-photo benchmark scenes"), refinement alone ended 0.1-0.2°
-worse than a colmap start within 1° and stopped at 0.8-1.3° from 5° starts; docs/measurements.md "Keypoint anchors, measured"
-has what the anchors changed.
+The dense objective's minimum sits where a coarse descriptor of blurry renders matches the photos; a SIFT keypoint is
+located to a pixel of the full photo against points triangulated from the reference's own images. With
+`anchors.weight > 0` every stage minimises
 
-With `keypoint_weight > 0` the objective of every stage becomes
+    dense(T) + weight * dense(T_stage_start) * mean_photos mean_keypoints rho(|r| / c)
 
-    dense(T) + keypoint_weight * dense(T_stage_start) * mean_photos mean_points rho(r / c)
-
-where r is the reprojection error of a photo's keypoint under the current Sim(3) T (meta -> dataparser), in
-teacher cells of that photo at the stage's grid, rho(u) = log(1 + u^2) (Cauchy: quadratic near the answer,
-a slowly growing penalty for the correspondences RANSAC let through by mistake) and c = `KERNEL_CELLS`. The
-factor dense(T_stage_start) (detached) makes the weight independent of the descriptor's units. The
-correspondences do not depend on the start: the same anchors pull a 5° or a 30° start towards them (with the
-render-free pre-alignment, `Anchoring.prealign`, for far starts). Photos
-without correspondences (night, heavy occlusion, too few matches) simply contribute no keypoint term; a
+with r a keypoint's reprojection error under the Sim(3) T (meta -> dataparser) in teacher cells, rho(u) = log(1 + u^2)
+(Cauchy: quadratic near the answer, a slowly growing cost for RANSAC's mistakes) and c = `KERNEL_CELLS`; the detached
+dense(T_stage_start) makes the weight independent of the descriptor's units. The same anchors pull any start toward
+them, so `Anchoring.prealign` first minimises the term alone, render-free. Photos without matches add nothing; a
 meta-image without any is registered by the dense objective alone (the paper's method).
 
-The photos' own cameras fitted to the anchors with the Sim(3) (focal lengths, poses, radial k1) are
-registration/camera_fit.py's; once photos were moved, the stages after the fit weigh the keypoints with the fit's
-narrow kernel (`Anchoring.narrow`): under the wider `KERNEL_CELLS` the keypoints a pixel or two off that the fit
-discounted pull the Sim(3) away from where the fit left it.
-
-Frames: keypoints are pixels of the original (distorted) photo, COLMAP convention, undistorted here once with
-the photo's pycolmap camera to normalised image coordinates; points are in the *reference world* frame (the
-reference's COLMAP model) and go to the dataparser frame with the reference's `world_to_dataparser`.
+Frames: keypoints are pixels of the original (distorted) photo (COLMAP convention), undistorted once with the photo's
+pycolmap camera; points are in the reference world and go to the dataparser frame with `world_to_dataparser`.
 """
 
 from __future__ import annotations
@@ -44,26 +28,26 @@ from torch import Tensor
 from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
-from sg_nerfstudio.registration.least_squares import RobustResiduals
+from sg_nerfstudio.registration.anchored_start.least_squares import RobustResiduals
 
 KERNEL_CELLS = 0.5
-"""Scale c of the Cauchy kernel in teacher cells (16 px of a 1024-px photo at a 32-cell grid): about the
-initialiser's RANSAC threshold (12 px of a 640-px photo), so that its inliers sit in the quadratic part."""
+"""Scale c of the Cauchy kernel in teacher cells: about the initialiser's RANSAC threshold, so that its inliers sit in
+the quadratic part."""
 FIT_KERNEL_FRACTION = 1 / 160
-"""Scale of the Cauchy kernel while photos' poses are fitted (`refine_photo_poses`), as a fraction of the photo's long
-side (4 px of a 640-px photo, 0.2 teacher cells at 32): near SIFT's localisation error, so that a photo's pose follows
-its well-located keypoints rather than the few-pixel errors RANSAC still let through; the wider `KERNEL_CELLS` would
-let those pull each free photo its own way. The stages after such a fit keep this kernel (`Anchoring.narrow`): with
-`KERNEL_CELLS` there the same errors moved the Sim(3) of a real 3-photo meta-image (Sceaux 100_7101-100_7104) from
-0.10° to 0.28° from the truth, whatever the keypoint weight (10, 30 or 1000)."""
+"""Cauchy kernel while the cameras are fitted, as a fraction of the photo's long side (4 px of 640): near SIFT's
+localisation error, so a free photo follows its well-located keypoints, not RANSAC's few-pixel mistakes. The stages
+after a pose fit keep it (`Anchoring.narrow`)."""
 MIN_DEPTH = 1e-6
 """Points at or behind a camera (under the current transform) carry no keypoint term for that step."""
 SCALE_RESOLUTION = 0.02
-"""The change of the Sim(3)'s scale (a log factor: 2%) the anchors must see for them to fix the scale
-(`anchors_fix_scale`); the fine step of the registration's scale search (`scale_search.SCALE_SEARCH`)."""
+"""The change of scale (log factor, 2%) the anchors must see to fix the scale (`anchors_fix_scale`), and the fine step
+of the scale search."""
 KEYPOINT_PRECISION_PX = 0.1
-"""The least error `anchors_fix_scale` compares with: about the best SIFT localises a keypoint (keypoints projected
-exactly, as in tests, have none, and a motion of nothing must not beat an error of nothing)."""
+"""The least error `anchors_fix_scale` compares with: about the best SIFT localises a keypoint (a motion of nothing must
+not beat an error of nothing)."""
+PREALIGN_LR = (0.02, 0.0005)
+"""Adam's learning rate of the pre-alignment, decaying exponentially from the first to the second: large enough to cross
+tens of degrees in 1000 render-free steps, small enough at the end not to overshoot the keypoints' basin."""
 
 
 def anchors_fix_scale(motion_px: float, error_px: float) -> bool:
@@ -223,12 +207,8 @@ class KeypointTerm:
         and the keypoints' median reprojection error (keypoints in front of their cameras).
 
         Scaling about a camera's centre leaves its image unchanged, so the anchors see the scale only through how far
-        their photos stand apart: one photo's anchors, or those of photos taken from nearly one spot (a tourist zooming
-        in), move by (almost) nothing (`anchors_fix_scale` compares the two). Measured
-        after the camera fit from 5° starts on the 19 real 3-5-photo meta-images of docs/measurements.md: a 2% change
-        moved the anchors of each one's two photos with the most correspondences 1.4-7.5 px RMS (of all its photos
-        1.8-7.0 px) against median errors of 0.34-0.96 px; a photo and a zoomed copy of it from the same spot, at most
-        0.02 px."""
+        their photos stand apart: one photo's anchors, or those of photos taken from nearly one spot, move by (almost)
+        nothing (`anchors_fix_scale` compares the two)."""
         centre = meta_to_dataparser.apply(self.centres.mean(0).numpy())
         scaled = Sim3.scaling_about(np.exp(log_factor), centre) @ meta_to_dataparser
         with torch.no_grad():
@@ -294,7 +274,7 @@ def corrected_rotations_and_centres(rotations: Tensor, centres: Tensor, correcti
 
 class Anchoring:
     """The keypoints of one registration and how each stage weighs them: `term` builds a stage's
-    `KeypointTerm` on that stage's teacher grid, weighted by `keypoint_weight` x the stage's dense objective at
+    `KeypointTerm` on that stage's teacher grid, weighted by `anchors.weight` x the stage's dense objective at
     its start (`start_value`). Empty (falsy) when the settings' weight is 0 or no photo has keypoints."""
 
     def __init__(self, meta: MetaImage, keypoints: list[PhotoKeypoints], world_to_dataparser: Sim3, weight: float, narrow: bool = False):
@@ -320,9 +300,9 @@ class Anchoring:
 
     def prealign(self, start: Sim3, centre: np.ndarray, grid_size: int, steps: int) -> Sim3:
         """The keypoint term alone minimised from `start` (numpy Sim3, meta -> dataparser): Adam on delta about
-        `centre` [3] for `steps` steps, learning rate 0.02 decaying to 0.0005. No render is involved (a few
-        milliseconds a step), so a start far from the answer reaches the keypoints' own optimum before the dense
-        objective, whose basin is a few cells wide, takes over. Returns `start` without keypoints."""
+        `centre` [3] for `steps` steps (`minimise_keypoint_term`). No render is involved (a few milliseconds a step),
+        so a start far off reaches the keypoints' own optimum before the dense objective, whose basin is a few cells
+        wide, takes over. Returns `start` without keypoints."""
         term = self.term(grid_size, 1.0, KERNEL_CELLS)
         if not term or steps <= 0:
             return start
@@ -360,14 +340,14 @@ def lens_parameters(camera) -> np.ndarray:
 
 
 def minimise_keypoint_term(term: KeypointTerm, start: Sim3, centre: np.ndarray, steps: int) -> Sim3:
-    """Adam on delta [7] about `centre` for `steps` steps, learning rate 0.02 decaying to 0.0005: the numpy Sim3 meta ->
-    dataparser (`start` when the optimisation diverged). First-order and with a decaying step so that a start tens of
-    degrees away crosses the keypoints' basin without overshooting it."""
+    """Adam on delta [7] about `centre` for `steps` steps, learning rate PREALIGN_LR: the numpy Sim3 meta -> dataparser
+    (`start` when the optimisation diverged)."""
     base = start.to_torch()
     centre_t = torch.from_numpy(np.asarray(centre, dtype=np.float64))
     delta = torch.zeros(7, dtype=torch.float64, requires_grad=True)
-    optimizer = torch.optim.Adam([delta], lr=0.02)
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=(0.0005 / 0.02) ** (1.0 / steps))
+    first, last = PREALIGN_LR
+    optimizer = torch.optim.Adam([delta], lr=first)
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=(last / first) ** (1.0 / steps))
     for _ in range(steps):
         optimizer.zero_grad()
         term(Sim3.update(delta, centre_t) @ base).backward()

@@ -1,28 +1,18 @@
 """The camera fit as one bundle adjustment: the meta-image's own SfM observations and the keypoint anchors, in pycolmap.
 
-`camera_fit.fit_cameras` with `camera_fit: adjustment` (fast-cpu). The meta-image's SfM model is moved into the
-reference world by the pre-aligned Sim(3); each photo's keypoint anchors (registration/keypoints.py: its RANSAC-verified
-SIFT matches with points the reference triangulated) join it as observations of *constant* 3-D points; and COLMAP's
-bundle adjuster refines every photo's pose, each camera's focal length and radial k1 and the model's own points together,
-under a Cauchy loss of FIT_KERNEL_FRACTION of the photo's long side (as the prior fit weighs its keypoints). The anchors
-fix the frame (the reference's), the model's own tracks hold the photos to one another exactly as its SfM did, with
-every correlation between a photo's focal length, distortion, depth and orientation that a 3-photo SfM leaves weak.
+`camera_fit.fit_cameras` with `solver: adjustment` (fast-cpu). The meta-image's model is moved into the reference world
+by the pre-aligned Sim(3); each photo's anchors join it as observations of *constant* 3-D points (the reference's);
+COLMAP's bundle adjuster then refines every photo's pose, each camera's focal length and k1 and the model's own points
+together, under a Cauchy loss of FIT_KERNEL_FRACTION of the long side. The anchors fix the frame; the model's own tracks
+hold the photos to one another as its SfM did, with every correlation between focal length, distortion, depth and
+orientation that independent priors (the prior fit) would each charge on their own.
 
-Why not the prior fit (`camera_fit.fit_jointly`): it holds each photo's focal length, k1, rotation and centre by its own
-independent prior (the SfM's marginal standard deviations). A wrong focal length in a 3-photo SfM comes with a wrong
-depth, k1 and relative rotation together; independent priors charge that joint move for every parameter it touches. On
-Strecha fountain-P11's fourth split (meta-image 0005-0008, SfM focal lengths 7-16% long) the prior fit left them 2-6%
-long and the registration's ΔT at 0.057; this adjustment brings them within 0.3-2.2% of the calibrated ones and ΔT to
-0.016 (docs/measurements.md "The camera fit as a bundle adjustment", which has the 23 real-photo meta-images).
-
-The result is a `CameraFit` like the prior fit's: the Sim(3) that maps the meta-image's own cameras onto the adjusted
-ones (`geometry.alignment.align_cameras`, the rule of the benchmarks' ground truth) and, relative to it, each photo's
-moved pose, focal scale and k1. Every photo moves, with anchors or not (its own observations carry it). Three cases are
-left to the prior fit (`camera_fit.fit_cameras` decides): cameras of models with more distortion terms than k1 (RADIAL,
-OPENCV, fisheye, ...), as COLMAP's adjuster frees all of a camera's extra parameters or none; multi-camera rigs; and anchors that leave
-the scale free (one photo's, or photos taken from one spot), about which the adjusted model's scale is a direction the
-solver ends anywhere along. Frames: the meta-image frame, the reference world (COLMAP model) of
-the anchors' points, the dataparser frame of the registration (`world_to_dataparser`)."""
+The result is a `CameraFit` like the prior fit's: the Sim(3) that maps the meta-image's cameras onto the adjusted ones
+(`geometry.alignment.align_cameras`) and, relative to it, each photo's pose, focal scale and k1. Every photo moves, with
+anchors or not. Left to the prior fit (`camera_fit.fit_cameras` decides): camera models with more terms than k1 (COLMAP's
+adjuster frees all of a camera's extra parameters or none), multi-camera rigs, and anchors that leave the scale free.
+Frames: the meta-image frame, the reference world of the anchors' points, the dataparser frame (`world_to_dataparser`).
+"""
 
 from __future__ import annotations
 
@@ -42,7 +32,7 @@ ADJUSTABLE_MODELS = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL"}
 """Camera models whose extra parameters are at most k1: what the prior fit frees, so the adjustment frees the same."""
 ANCHOR_OBSERVATIONS = 2
 """Each anchor enters as this many observations of its constant point: COLMAP's adjuster takes only points with a track
-of two or more. On fountain-P11's 0005-0008, 2, 4 and 6 moved the cameras by under 0.002 scene units."""
+of two or more (more copies changed nothing measurable)."""
 
 
 def adjustable(meta: MetaImage) -> bool:

@@ -1,24 +1,15 @@
-"""Levenberg-Marquardt for small robust least-squares problems in torch: the keypoint camera fit's solver.
+"""Levenberg-Marquardt for small robust least-squares problems in torch: the prior camera fit's solver.
 
-The joint fit of the Sim(3) with the meta-image's cameras (`camera_fit.fit_jointly`: 7 + 6 per photo + 2 per COLMAP
-camera parameters, 31 for a 3-photo meta-image) is a bundle adjustment with the 3-D points held: smooth, small and
-ill-conditioned (focal length against depth, a common turn of every photo against the Sim(3)). L-BFGS had not
-converged after 1000 iterations there (largest gradient component 0.24), so its end point moved with 1e-11 changes
-of the priors and a fit landed on either side of the plausibility limit from run to run (docs/measurements.md "The keypoint kernel
-after the camera fit, measured"); 5000 iterations converged but took 19 s. A Gauss-Newton step uses the Jacobian of
-the residuals, which is what such problems are made of: it converges in tens of iterations.
-
-Problem form (`RobustResiduals`): cost(x) = sum_n a_n log(1 + |r_n(x)|^2) + sum_k q_k(x)^2, with r_n [D] residual
-vectors in units of a Cauchy kernel (a keypoint's 2-D reprojection error over the kernel scale), a_n >= 0 their
-weights, and q_k quadratic residuals (priors). Each iteration weighs the robust rows by the Cauchy kernel's
-derivative, a_n / (1 + |r_n|^2) (iteratively reweighted least squares: the model's gradient is the cost's),
-solves the damped normal equations (H + lambda diag(H)) dx = -g with the Jacobian from forward-mode AD
-(`torch.func.jacfwd`, one pass per parameter), and adapts lambda by the ratio of actual to predicted decrease
+Problem (`RobustResiduals`): cost(x) = sum_n a_n log(1 + |r_n(x)|^2) + sum_k q_k(x)^2, with r_n [D] residual vectors in
+units of a Cauchy kernel (a keypoint's 2-D reprojection error over the kernel scale), a_n >= 0 their weights and q_k
+quadratic residuals (priors). Each iteration weighs the robust rows by the kernel's derivative a_n / (1 + |r_n|^2)
+(iteratively reweighted least squares), solves the damped normal equations (H + lambda diag(H)) dx = -g with the
+Jacobian from forward-mode AD (`torch.func.jacfwd`), and adapts lambda by the ratio of actual to predicted decrease
 (Nielsen's rule).
 
-Why by hand: `scipy.optimize.least_squares` applies its robust loss to each scalar residual, while the keypoint
-term's Cauchy kernel acts on each keypoint's 2-D error (isotropic: the same function the render stages minimise,
-`keypoints.KeypointTerm`); torch has no least-squares solver.
+Why by hand: `scipy.optimize.least_squares` applies its robust loss to each scalar residual, while the keypoint term's
+Cauchy kernel acts on each keypoint's 2-D error (isotropic, the function the rendered stages minimise); torch has no
+least-squares solver; pycolmap's adjuster has no priors on intrinsics (it is the other solver, bundle_adjustment.py).
 """
 
 from __future__ import annotations
@@ -28,6 +19,12 @@ from typing import Callable
 
 import torch
 from torch import Tensor
+
+
+INITIAL_DAMPING = 1e-4
+"""lambda at the first iteration: nearly Gauss-Newton, as the camera fit starts pre-aligned, near its minimum."""
+MAX_DAMPING = 1e16
+"""No step lowers the cost even at this lambda: the minimum, to rounding."""
 
 
 @dataclass
@@ -63,7 +60,7 @@ def levenberg_marquardt(
     largest gradient component is under `gradient_tolerance` times the cost, or when no damping finds a lower cost."""
     x = x0.detach().clone()
     cost = float(residuals(x).cost())
-    damping, growth = 1e-4, 2.0
+    damping, growth = INITIAL_DAMPING, 2.0
 
     def parts(point: Tensor) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
         value = residuals(point)
@@ -93,7 +90,7 @@ def levenberg_marquardt(
                 break
             damping *= growth
             growth *= 2.0
-            if damping > 1e16:  # no step lowers the cost: at the minimum to rounding, unless the gradient is not finite
+            if damping > MAX_DAMPING:  # no step lowers the cost: at the minimum to rounding, unless the gradient is not finite
                 return Solution(x, iteration, bool(torch.isfinite(gradient).all()))
         x = x + step
         decrease, cost = cost - trial, trial

@@ -1,8 +1,14 @@
-"""Write a directory so that it appears complete or not at all."""
+"""Write a directory so that it appears complete or not at all, apart from every input, and by one command at a time.
+
+`atomic_directory` fills a hidden sibling and renames it into place; `check_apart_from_inputs` is the one rule that an
+output never is, nor holds, anything a command reads; `output_lock` lets a second command writing the same output stop
+before its work (an advisory `flock`, which the system releases when a process dies: a crash leaves no stuck lock).
+"""
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import shutil
 import tempfile
@@ -74,6 +80,63 @@ def check_new_output_directory(path: Path, overwrite: bool, inputs: Iterable[Opt
         raise OutputPathError(f"Output directory {path} already exists; pass --overwrite to replace it.")
 
 
+_HELD: dict[Path, int] = {}
+"""Outputs this process holds the lock of -> how many times (the commands nest: a job, then each result directory)."""
+
+
+def lock_path(output: Path) -> Path:
+    """The lock file of an output directory: a hidden sibling, so that it exists before the output does."""
+    output = Path(output).resolve()
+    return output.parent / f".{output.name}.sg-lock"
+
+
+@contextmanager
+def output_lock(output: Path) -> Iterator[None]:
+    """Hold the lock of `output` for the block: OutputPathError naming the other process when a running command holds it.
+    Re-entrant within one process. The lock file is removed on the way out."""
+    output = Path(output).resolve()
+    if output in _HELD:
+        _HELD[output] += 1
+        try:
+            yield
+        finally:
+            _HELD[output] -= 1
+        return
+    check_output_path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    path = lock_path(output)
+    while True:
+        descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(descriptor, 32).decode(errors="replace").strip() or "another process"
+            os.close(descriptor)
+            raise OutputPathError(
+                f"Output directory {output} is being written by a command still running (process {holder}); expected it to "
+                "finish first, or another output directory."
+            ) from None
+        try:
+            same = os.fstat(descriptor).st_ino == os.stat(path).st_ino  # not a lock file its last holder just removed
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(descriptor)
+    os.ftruncate(descriptor, 0)
+    os.write(descriptor, str(os.getpid()).encode())
+    _HELD[output] = 1
+    try:
+        yield
+    finally:
+        del _HELD[output]
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+        os.close(descriptor)
+
+
 @contextmanager
 def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling of `target` to fill; on success it replaces `target`, on any error it is
@@ -85,6 +148,14 @@ def atomic_directory(target: Path, overwrite: bool = False) -> Iterator[Path]:
     """
     target = Path(target)
     check_output_path(target)
+    with output_lock(target):
+        with _filled(target, overwrite) as staging:
+            yield staging
+
+
+@contextmanager
+def _filled(target: Path, overwrite: bool) -> Iterator[Path]:
+    """`atomic_directory`'s body, under the output's lock."""
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} already exists")
     try:

@@ -10,9 +10,10 @@ missing images.
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Optional
 
 
 class InputError(Exception):
@@ -29,6 +30,27 @@ class InputError(Exception):
 def not_a_directory(path: Path) -> str:
     """How a path that should be a directory is not one, for an InputError's sentence: "is a file" or "does not exist"."""
     return "is a file" if Path(path).exists() else "does not exist"
+
+
+def range_problem(value: object, whole: bool = False, minimum: Optional[float] = None, maximum: Optional[float] = None,
+                  above: Optional[float] = None, below: Optional[float] = None) -> Optional[str]:
+    """What a numeric setting should be, as the end of a sentence ("a finite number above 0"), when `value` is not a finite
+    number (a whole one with `whole`) within the bounds; None when it is. NaN and infinities fail every bound."""
+    kind = "a whole number" if whole else "a finite number"
+    if minimum is not None and maximum is not None:
+        bounds = [f"from {minimum:g} to {maximum:g}"]
+    else:
+        bounds = [f"of {minimum:g} or more" if minimum is not None else "", f"of at most {maximum:g}" if maximum is not None else ""]
+    bounds += [f"above {above:g}" if above is not None else "", f"below {below:g}" if below is not None else ""]
+    expected = " ".join([kind, " and ".join(b for b in bounds if b)]).strip()
+    is_number = isinstance(value, int) if whole else isinstance(value, (int, float))
+    if isinstance(value, bool) or not is_number or not math.isfinite(value):
+        return expected
+    if (minimum is not None and value < minimum) or (maximum is not None and value > maximum):
+        return expected
+    if (above is not None and value <= above) or (below is not None and value >= below):
+        return expected
+    return None
 
 
 def install_input_error_hook() -> None:

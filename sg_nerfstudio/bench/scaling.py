@@ -123,10 +123,10 @@ class ChildArgs:
 
 def densify_run(config_path: Path, gaussians: int, target: Path, seed: int) -> Path:
     """A copy of the trained run at `config_path` whose checkpoint holds `gaussians` Gaussians (module docstring)."""
-    from sg_nerfstudio.splat.trained import open_trained_run
+    from sg_nerfstudio.splat.trained import open_trained_run, read_checkpoint
 
     run = open_trained_run(config_path)
-    state = torch.load(run.checkpoints[-1], map_location="cpu", weights_only=False)
+    state = read_checkpoint(run.checkpoints[-1])
     prefix = "_model.gauss_params."
     params = {key[len(prefix):]: value for key, value in state["pipeline"].items() if key.startswith(prefix)}
     count = params["means"].shape[0]

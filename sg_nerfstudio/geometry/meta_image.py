@@ -309,12 +309,27 @@ def sibling_models(model_path: Path) -> list[Path]:
     return sorted(p for p in model_path.parent.iterdir() if p.is_dir() and p != model_path and holds_colmap_model(p))
 
 
+MODEL_FILES = ("cameras", "images", "points3D")
+"""The files every COLMAP model has (.bin or .txt); rigs and frames, which COLMAP 3.12 adds, pycolmap makes up when absent."""
+
+
+def check_model_files(model_path: Path) -> None:
+    """MetaImageError naming the files of MODEL_FILES missing from a COLMAP model folder (pycolmap itself names all five
+    it reads, present or not)."""
+    missing = [name for name in MODEL_FILES if not any((model_path / f"{name}{suffix}").is_file() for suffix in (".bin", ".txt"))]
+    if missing:
+        given = "binary" if (model_path / "images.bin").is_file() else "text"
+        names = " and ".join(f"{name}.{'bin' if given == 'binary' else 'txt'}" for name in missing)
+        raise MetaImageError(f"COLMAP model {model_path} has no {names}; expected cameras, images and points3D of one {given} model there.")
+
+
 def load_meta_image(directory: Path, min_photos: int = 3) -> MetaImage:
     """Read and validate a meta-image; every problem is one MetaImageError sentence."""
     directory = Path(directory)
     if not directory.is_dir():
         raise MetaImageError(f"Meta-image directory {directory} {not_a_directory(directory)}; expected a directory holding images/ and a COLMAP model (sparse/0).")
     model_path = find_model(directory)
+    check_model_files(model_path)
     try:
         reconstruction = pycolmap.Reconstruction(str(model_path))
     except Exception as error:

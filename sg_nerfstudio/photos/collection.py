@@ -56,6 +56,22 @@ def list_photos(folder: Path) -> list[Path]:
     return photos
 
 
+def same_pictures(paths: list[Path]) -> str:
+    """A phrase naming photos that are byte-identical copies of one another ("3 are copies of one picture: a.jpg, b.jpg,
+    c.jpg"), the usual reason such a folder forms no SfM model (no baseline between them); "" when none are."""
+    import hashlib
+
+    groups: dict[str, list[str]] = {}
+    for path in paths:
+        groups.setdefault(hashlib.sha256(Path(path).read_bytes()).hexdigest(), []).append(Path(path).name)
+    copies = sorted((names for names in groups.values() if len(names) > 1), key=len, reverse=True)
+    if not copies:
+        return ""
+    largest = copies[0]
+    shown = ", ".join(largest[:4]) + (" ..." if len(largest) > 4 else "")
+    return f"{len(largest)} of them are copies of one picture ({shown})"
+
+
 def files_not_read(folder: Path) -> list[str]:
     """Names of the files directly inside `folder` that `list_photos` does not take (HEIC, WebP, TIFF, RAW, notes, ...),
     sorted; hidden files (".DS_Store") left out. Reported to the user, who may want them converted to JPEG."""

@@ -23,7 +23,7 @@ from typing import Callable, Optional
 import pycolmap
 
 from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
-from sg_nerfstudio.photos.collection import list_photos, prepare_photos
+from sg_nerfstudio.photos.collection import list_photos, prepare_photos, same_pictures
 from sg_nerfstudio.photos.sfm import ReconstructionError, SfmResult, SfmSettings, reconstruct
 
 
@@ -66,10 +66,12 @@ def build_meta_images(
         prepared = prepare_photos(sources, working, max_size, on_photo)
         result = reconstruct(working, [p.name for p in prepared], staging / "sfm", settings, stage)
         if not result.models:
-            reasons = "; ".join(f"{name}: {reason}" for name, reason in result.unregistered()[:3])
+            copies = same_pictures(sources)
+            reasons = copies or "; ".join(f"{name}: {reason}" for name, reason in result.unregistered()[:3])
+            expected = "different views of one place" if copies else "overlapping photos of one place"
             raise ReconstructionError(
                 f"The {len(prepared)} photos of {photos} formed no model of at least {settings.min_model_size} photos "
-                f"({reasons}); expected overlapping photos of one place."
+                f"({reasons}); expected {expected}."
             )
         summaries = []
         for index, model in enumerate(result.models):

@@ -48,7 +48,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
-from sg_nerfstudio.errors import InputError, not_a_directory
+from sg_nerfstudio.errors import InputError, not_a_directory, range_problem
 from sg_nerfstudio.geometry.alignment import CameraAlignment, align_cameras, camera_centres, camera_residuals
 from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.geometry.triangulation import track_observations, triangulate_track
@@ -119,6 +119,31 @@ class SolvedPhoto:
     cam_from_world: Array  # [3, 4] OpenCV
 
 
+REAL_SCENE_RANGES = {
+    "reference_every": dict(whole=True, minimum=2),  # 1 would leave no photo for meta-images
+    "meta_size": dict(whole=True, minimum=3),  # a meta-image is an SfM model
+    "reference_size": dict(whole=True, minimum=16), "photo_size": dict(whole=True, minimum=16),
+    "reference_smoothing": dict(minimum=0), "appearance_strength": dict(minimum=0), "occluder_rate": dict(minimum=0, maximum=1),
+    "occluder_coverage": dict(minimum=0, maximum=1), "jpeg_quality": dict(whole=True, minimum=1, maximum=100),
+    "min_reference_points": dict(whole=True, minimum=1), "seed": dict(whole=True, minimum=0),
+}
+"""Every numeric setting of a real-photo scene and its range (`errors.range_problem`'s bounds; tuples: each entry)."""
+
+
+def check_real_scene_ranges(settings: RealSceneSettings) -> None:
+    """RealSceneError naming the first numeric setting that is not a finite number in its range."""
+    for name, bounds in REAL_SCENE_RANGES.items():
+        value = getattr(settings, name)
+        for entry in value if isinstance(value, tuple) else (value,):
+            problem = range_problem(entry, **bounds)
+            if problem:
+                raise RealSceneError(f"Scene setting --scene.{name.replace('_', '-')} must be {problem}, got {entry!r}.")
+    for name in ("occluder_coverage", "jpeg_quality"):
+        low, high = getattr(settings, name)
+        if low > high:
+            raise RealSceneError(f"Scene setting --scene.{name.replace('_', '-')} must list its lower bound first, got {low} {high}.")
+
+
 def build_real_scene(
     photos: Path, output: Path, settings: RealSceneSettings, cameras: Optional[Path] = None,
     overwrite: bool = False, stage: Optional[Stage] = None,
@@ -126,11 +151,8 @@ def build_real_scene(
     """Write the scene (module docstring) into `output`; returns the manifest (scene.json)."""
     stage = stage or (lambda _: None)
     started = time.perf_counter()
-    if settings.meta_size < 3:
-        raise RealSceneError(f"meta_size must be at least 3 photos (a meta-image is an SfM model), got {settings.meta_size}.")
+    check_real_scene_ranges(settings)
     check_camera_model(settings.meta_camera_model, "--scene.meta-camera-model")
-    if settings.reference_every < 2:
-        raise RealSceneError(f"reference_every must be at least 2 (1 would leave no photo for meta-images), got {settings.reference_every}.")
     if cameras is not None and not Path(cameras).is_dir():
         raise RealSceneError(
             f"Cameras {cameras} {not_a_directory(cameras)}; expected a COLMAP model directory or a folder of "

@@ -28,12 +28,13 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 from rich.text import Text
 
-from sg_nerfstudio.atomic import check_apart_from_inputs, check_output_path
+from sg_nerfstudio.atomic import check_apart_from_inputs, check_output_path, output_lock
 from sg_nerfstudio.errors import InputError
 from sg_nerfstudio.geometry.meta_image import MetaImage, load_meta_image, radial_k1_index, sibling_models
 from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+from sg_nerfstudio.initialisers.features import default_cache_dir as default_initialiser_cache
 from sg_nerfstudio.registration.merge import MergePart, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.objectives import build_objective, check_objective_settings, prepare_photos
@@ -41,10 +42,10 @@ from sg_nerfstudio.registration.optimize import RegistrationResult, register, to
 from sg_nerfstudio.registration.outputs import registered_reconstruction, write_outputs
 from sg_nerfstudio.registration.reference import load_reference
 from sg_nerfstudio.registration.robust import check_robust_settings
-from sg_nerfstudio.registration.settings import RegistrationSettings, check_ranges
+from sg_nerfstudio.registration.settings import PRESETS, RegistrationSettings, check_ranges
 from sg_nerfstudio.registration.verdict import SEVERITY
 from sg_nerfstudio.render.threads import set_threads
-from sg_nerfstudio.splat.trained import read_trainer_config
+from sg_nerfstudio.splat.trained import read_trainer_config, trained_run_inputs
 
 MERGED = "merged"
 
@@ -149,7 +150,10 @@ def check_targets(job: RegistrationJob, names: list[str]) -> None:
         raise ArgumentError(f"Meta-image directories must have distinct names (results go to <output-dir>/<name>), got {names}.")
     targets = [job.output_dir / name for name in names] + ([job.output_dir / MERGED] if len(names) > 1 else [])
     init_files = [Path(value) for value in job.init if value not in METHODS and value != "identity"]
-    inputs = [*job.meta_image, *job.gt, *init_files, job.load_config, job.reference_colmap, job.reference_images]
+    inputs = [
+        *job.meta_image, *job.gt, *init_files, *trained_run_inputs(job.load_config), job.reference_colmap, job.reference_images,
+        job.init_cache_dir or default_initialiser_cache(), *([Path(job.config)] if job.config and job.config not in PRESETS else []),
+    ]
     for target in targets:
         check_apart_from_inputs(target, inputs)
         if target.exists() and not job.overwrite:
@@ -161,7 +165,14 @@ def check_targets(job: RegistrationJob, names: list[str]) -> None:
 
 
 def run_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
-    """Register every meta-image of the job, write its outputs and (for several) merged/; see the module docstring."""
+    """Register every meta-image of the job, write its outputs and (for several) merged/; see the module docstring. A
+    second job writing the same --output-dir meanwhile stops at once (`atomic.output_lock`)."""
+    with output_lock(job.output_dir):
+        return registered_job(job, console)
+
+
+def registered_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
+    """`run_job` under the output directory's lock."""
     read_trainer_config(job.load_config)  # fail fast on a wrong config, before heavy work
     check_ranges(job.settings)
     check_robust_settings(job.settings)

@@ -25,7 +25,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio import cli
-from sg_nerfstudio.atomic import check_output_path
+from sg_nerfstudio.atomic import check_apart_from_inputs, check_output_path, output_lock
 from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
@@ -33,7 +33,7 @@ from sg_nerfstudio.bench.twins import TwinSceneRunner, build_twins
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.registration.optimize import total_steps
-from sg_nerfstudio.registration.settings import load_preset
+from sg_nerfstudio.registration.settings import PRESETS, load_preset
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.errors import cli_main
 
@@ -86,6 +86,17 @@ class BenchArgs:
 
 
 def run(args: BenchArgs, console: Console) -> Path:
+    """Train, register and tabulate (module docstring), under the lock of the results directory (`atomic.output_lock`)."""
+    presets = [Path(name) for name in (args.config, *args.compare_config) if name not in PRESETS]
+    check_apart_from_inputs(args.output, [args.benchmark, args.twin_anchors, *presets])
+    if args.twin_anchors is not None:
+        check_apart_from_inputs(args.twin_anchors, [args.benchmark, args.output, *presets])
+    with output_lock(args.output):
+        return benchmarked(args, console)
+
+
+def benchmarked(args: BenchArgs, console: Console) -> Path:
+    """`run` under the lock."""
     started = time.perf_counter()
     set_threads(args.threads)
     set_colmap_verbosity(args.verbose)

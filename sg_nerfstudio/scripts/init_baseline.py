@@ -33,12 +33,13 @@ from rich.table import Table
 from rich.text import Text
 
 from sg_nerfstudio import cli
-from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
+from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory, output_lock
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.initialisers import Initialiser, InitialiserSettings, InitResult, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.session import ArgumentError, read_ground_truths
 from sg_nerfstudio.errors import cli_main
+from sg_nerfstudio.splat.trained import trained_run_inputs
 
 
 @dataclass
@@ -68,7 +69,14 @@ class InitBaselineArgs:
 
 
 def run(args: InitBaselineArgs, console: Console) -> list[dict]:
-    inputs = [*args.meta_image, *args.gt, args.load_config, args.reference_colmap, args.reference_images]
+    """Initialise every meta-image and write the output directory, under its lock (`atomic.output_lock`)."""
+    with output_lock(args.output_dir):
+        return initialised(args, console)
+
+
+def initialised(args: InitBaselineArgs, console: Console) -> list[dict]:
+    inputs = [*args.meta_image, *args.gt, args.reference_colmap, args.reference_images, args.initialiser.resolved_cache_dir()]
+    inputs += trained_run_inputs(args.load_config) if args.load_config is not None else []
     check_new_output_directory(args.output_dir, args.overwrite, inputs)
     source = resolve_reference_source(args.load_config, args.reference_colmap, args.reference_images)
     metas = [load_meta_image(path) for path in args.meta_image]

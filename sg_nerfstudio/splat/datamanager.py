@@ -49,7 +49,7 @@ def check_colmap_model(config: "FeatureDatamanagerConfig") -> None:
         return
     found = model_below(data)
     hint = (f"this folder has one in {found}: add `--colmap-path {found.relative_to(data)}` after `colmap`" if found
-            else f"expected cameras, images and points3D (.bin or .txt) there, or a folder whose model is in {' or '.join(str(l) for l in COLMAP_LAYOUTS[:2])}")
+            else f"expected cameras, images and points3D (.bin or .txt) there, or a folder whose model is in {' or '.join(str(layout) for layout in COLMAP_LAYOUTS[:2])}")
     raise DatasetInputError(f"No COLMAP model in {model}; {hint}.")
 
 
@@ -63,18 +63,26 @@ def check_dataset(config: "FeatureDatamanagerConfig") -> None:
 
 
 def check_images_decode(config: "FeatureDatamanagerConfig") -> None:
-    """Stop with one sentence on the first image the COLMAP model lists that is on disk but cannot be decoded whole (a
-    truncated JPEG or PNG): nerfstudio's datamanager otherwise fails on it with a traceback, after `ns-train` has
-    written the run's config.yml. Missing images are named later, by the datamanager (`_check_images_exist`)."""
+    """Stop with one sentence when images the COLMAP model lists are missing (or their folder is), or on the first one
+    that cannot be decoded whole (a truncated JPEG or PNG): nerfstudio's datamanager otherwise fails on them with a
+    traceback, after `ns-train` has written the run's config.yml."""
     parser = config.dataparser
     if not hasattr(parser, "colmap_path") or not hasattr(parser, "images_path"):
         return
     data = Path(config.data) if config.data is not None else Path(parser.data)  # as FullImageDatamanager resolves it
-    model = data / parser.colmap_path
-    for name in colmap_image_names(model):
-        path = data / parser.images_path / name
-        if not path.is_file():
-            continue
+    model, folder = data / parser.colmap_path, data / parser.images_path
+    names = colmap_image_names(model)
+    if names and not folder.is_dir():
+        raise DatasetInputError(f"The image folder {folder} does not exist; expected the {len(names)} images the COLMAP model {model} lists there.")
+    missing = [name for name in names if not (folder / name).is_file()]
+    if missing:
+        shown = ", ".join(missing[:3]) + (" ..." if len(missing) > 3 else "")
+        raise DatasetInputError(
+            f"{len(missing)} of the {len(names)} images the COLMAP model {model} lists are missing from {folder} ({shown}); "
+            "expected every image the model lists."
+        )
+    for name in names:
+        path = folder / name
         try:
             decoded_size(path)
         except Exception as error:

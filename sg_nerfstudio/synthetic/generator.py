@@ -28,7 +28,7 @@ import pycolmap
 from rich.progress import Progress
 
 from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
-from sg_nerfstudio.errors import InputError
+from sg_nerfstudio.errors import InputError, range_problem
 from sg_nerfstudio.synthetic.appearance import (
     apply_camera_effects, draw_occluders, flat_lighting, random_look, sun_lighting,
 )
@@ -143,8 +143,32 @@ def meta_image_specs(config: SceneConfig) -> list[MetaImageSpec]:
     return specs
 
 
+SCENE_RANGES = {
+    "seed": dict(whole=True, minimum=0), "reference_fov_deg": dict(above=0, below=180), "n_ring": dict(whole=True, minimum=0),
+    "n_aerial": dict(whole=True, minimum=0), "ring_radius_ratio": dict(above=0), "appearance_strength": dict(minimum=0),
+    "occluder_rate": dict(minimum=0, maximum=1), "occluder_coverage": dict(minimum=0, maximum=1), "distortion": dict(minimum=0, maximum=0.5),
+    "meta_scale_range": dict(above=0), "n_sparse_points": dict(whole=True, minimum=1), "reference_size": dict(whole=True, minimum=16),
+    "photo_size": dict(whole=True, minimum=16),
+    "building.width": dict(above=0), "building.depth": dict(above=0), "building.height": dict(above=0),
+    "building.towers": dict(whole=True, minimum=0), "building.tower_height_ratio": dict(above=0),
+    "building.window_rows": dict(whole=True, minimum=0), "building.window_cols": dict(whole=True, minimum=0),
+    "building.ground_radius": dict(above=0), "building.ground_density": dict(minimum=0), "building.n_gaussians": dict(whole=True, minimum=100),
+    "building.palette_seed": dict(whole=True, minimum=0), "building.unique_detail": dict(minimum=0),
+}
+"""Every numeric setting of a synthetic scene and its range (`errors.range_problem`'s bounds; tuples: each entry)."""
+
+
 def validate(config: SceneConfig) -> None:
     """Raise SceneGenerationError with one sentence for settings that cannot produce a scene."""
+    for path, bounds in SCENE_RANGES.items():
+        group, _, name = path.rpartition(".")
+        value = getattr(getattr(config, group) if group else config, name)
+        for entry in value if isinstance(value, tuple) else (value,):
+            problem = range_problem(entry, **bounds)
+            if problem:
+                raise SceneGenerationError(f"Scene setting --{name.replace('_', '-')} must be {problem}, got {entry!r}.")
+    if config.occluder_coverage[0] > config.occluder_coverage[1] or config.meta_scale_range[0] > config.meta_scale_range[1]:
+        raise SceneGenerationError("Scene ranges occluder_coverage and meta_scale_range must list their lower bound first.")
     specs = meta_image_specs(config)
     if config.n_ring + config.n_aerial < 3:
         raise SceneGenerationError(f"A reference capture needs at least 3 views, got n_ring + n_aerial = {config.n_ring + config.n_aerial}.")

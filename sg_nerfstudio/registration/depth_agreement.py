@@ -15,8 +15,8 @@ The dense objective sees scale only through the parallax between the photos (wea
 facade) and depth only through the photos' magnification, so a registration can drift in scale and depth
 while its renders still match. r measures that with no ground truth; the verdict reports it (`summarise`) and, where
 most points agree, lets it hold a shallow minimum (`verdict.Evidence.depths_hold`).
-Measured on the real-photo scenes (docs/measurements.md "Depth agreement"): |median r| <= 0.03 at the ground truth, about
-0.1 for a 10% scale error. As a Cauchy term of the objective it was tried and not adopted (same section).
+About 0.1 for a 10% scale error; as a term of the objective it was tried and not kept (docs/measurements.md "Depth
+agreement").
 Frames: points in each photo's OpenCV camera frame (meta units); renders in the dataparser frame. Written here
 because it is a comparison of two of this project's own inputs (no library has it); the expected depth itself is the
 rasterizer's "RGB+ED" mode (gsplat's convention).

@@ -9,11 +9,9 @@ previous loss is at most m + z * s, with m the median of the previous losses and
 squares). `none`: the plain mean. With `trim_after` > 0 every rule is the plain mean for that fraction of
 each stage's steps first (trimming once the pose has settled).
 
-Why `outlier-lts` (docs/measurements.md, "The robust loss"): away from the answer every photo's loss sits near the same
-floor (on the real-photo scenes, from 15° starts all three photos of a meta-image within 10% of their
-median, from 5° within 21%), so the median rule drops a photo that is no worse than the others, a third of the evidence of a
-3-photo meta-image, and a different one from step to step. Only near the answer do occluded photos
-separate (a 30%-occluded photo 1.34x the median, 10-20%-occluded ones 1.07-1.12x, clean ones 0.7-1.0x).
+Why `outlier-lts`: away from the answer every photo's loss sits near the same floor, so the median rule drops a photo
+that is no worse than the others (a third of the evidence of a 3-photo meta-image), and a different one each step;
+only near the answer do occluded photos separate (docs/measurements.md, "The robust loss").
 """
 
 from __future__ import annotations

@@ -194,7 +194,7 @@ def test_missing_images_and_unloadable_teacher_fail_early(tiny_scene, tmp_path, 
     shutil.copytree(tiny_scene / "reference", broken)
     (broken / "images" / "ring_003.png").unlink()
     config = make_config(broken, tmp_path / "out", 1, TeacherConfig(name="offline", input_size=64, cache_dir=tmp_path / "cache"))
-    with pytest.raises(DatasetInputError, match=r"1 of the \d+ (train|eval) images .* are missing .*ring_003.png"):
+    with pytest.raises(DatasetInputError, match=r"1 of the \d+ images the COLMAP model .* lists are missing .*ring_003.png"):
         config.pipeline.setup(device="cpu", test_mode="val")
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))

@@ -158,7 +158,7 @@ def test_bad_settings_fail_with_one_sentence_and_leave_nothing(tmp_path, capsys)
         generate_scene(replace(PRESETS["tiny"], meta_images=("top:5",)), tmp_path / "x")
     with pytest.raises(SceneGenerationError, match="one meta-image"):
         generate_scene(replace(PRESETS["tiny"], meta_images=("front:5", "front:6")), tmp_path / "x")
-    with pytest.raises(SceneGenerationError, match="unique_detail must be 0 or more"):
+    with pytest.raises(SceneGenerationError, match="--unique-detail must be a finite number of 0 or more, got nan"):
         generate_scene(replace(PRESETS["tiny"], building=replace(PRESETS["tiny"].building, unique_detail=float("nan"))), tmp_path / "x")
     assert list(tmp_path.iterdir()) == []
 

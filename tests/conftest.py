@@ -107,3 +107,39 @@ def trained(tiny_scene, tmp_path_factory):
     ))
     save(trainer, config)
     return trainer, history, config
+
+
+@pytest.fixture(scope="session")
+def quick_trained(tiny_scene, tmp_path_factory) -> Path:
+    """The config.yml of a 20-step CPU sg-feature-splat of the tiny scene (a few seconds): a trained run on disk, as
+    ns-train leaves one, for tests of what reads it (the viewer) that need no accuracy from the model."""
+    output = tmp_path_factory.mktemp("quick-train")
+    config = make_config(tiny_scene / "reference", output, 20, TeacherConfig(name="offline", input_size=128, cache_dir=output / "cache"))
+    save(train(config, lambda step, trainer, losses: None), config)
+    return config.get_base_dir() / "config.yml"
+
+
+SLOW_FIXTURES = {
+    "trained": "the session's 300-step tiny reference: ~10 s of training, and the ~90 tests on it take ~5 min together",
+}
+"""A test that uses one of these fixtures, directly or through another fixture, is marked `slow`: `pytest -m "not slow"`
+leaves it out. A new test is classified by the fixtures it asks for; SLOW_TESTS names the rest."""
+
+SLOW_TESTS = {
+    "tests/test_bench.py::test_sg_bench_writes_tables_and_resumes": "trains the benchmark's references, runs sg-bench: ~70 s",
+    "tests/test_bench.py::test_benchmark_modules_end_a_missing_reference_with_one_sentence[scaling-arguments1]":
+        "python -m sg_nerfstudio.bench.scaling and its measurement child: two interpreters importing torch, ~5 s",
+    "tests/test_install.py::test_sg_demo_runs_from_a_non_editable_install_outside_the_repository": "a wheel and sg-demo: ~40 s",
+    "tests/test_photos.py::test_retrieval_pairs_above_the_exhaustive_limit": "SfM with retrieval pairs: ~20 s",
+    "tests/test_initialisers.py::test_initialisers_recover_the_ground_truth_on_clean_renders": "~6 s each",
+    "tests/test_initialisers.py::test_photos_too_weak_to_register_alone_lend_their_rig_inliers_as_anchors": "~8 s",
+    "tests/test_render.py::test_gradcheck_all_gaussian_parameters_and_viewmats[numba]": "float64 gradcheck through numba: ~10 s",
+}
+"""Tests slow on their own, over ~3 s on the 2-core CI machine (2026-12-06, numba's cache warm): node id -> why. An id
+without parameters marks every parametrisation. tests/test_lint.py checks that each still names a test."""
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if set(SLOW_FIXTURES) & set(getattr(item, "fixturenames", ())) or {item.nodeid, item.nodeid.split("[")[0]} & set(SLOW_TESTS):
+            item.add_marker(pytest.mark.slow)

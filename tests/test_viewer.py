@@ -47,9 +47,8 @@ def port_accepts(port: int) -> bool:
 
 
 @pytest.fixture(scope="module")
-def reference_config(trained) -> Path:
-    _, _, config = trained
-    return config.get_base_dir() / "config.yml"
+def reference_config(quick_trained) -> Path:
+    return quick_trained  # the viewer needs a trained run, not an accurate one: 20 steps keep these tests fast
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,9 @@ Registration, the initialisers and the viewer read trained models only through h
 
 from __future__ import annotations
 
+import dataclasses
+import enum
+import importlib
 import json
 import math
 from dataclasses import dataclass
@@ -117,31 +120,26 @@ def first_untrusted_tag(text: str) -> Optional[str]:
 
 def trusted_tag(tag: str) -> bool:
     """Whether a YAML tag builds only a configuration value (see `first_untrusted_tag`)."""
-    import dataclasses
-    import enum
-
     if tag in PLAIN_TAGS:
         return True
     prefix = "tag:yaml.org,2002:python/"
-    for kind in ("object/apply:", "object:", "name:"):
+    for kind, test in (("object/apply:", is_path_or_enum), ("object:", dataclasses.is_dataclass), ("name:", lambda _: True)):
         if tag.startswith(prefix + kind):
-            target = resolve_trusted_name(tag[len(prefix + kind):], TRUSTED_MODULES + (TRUSTED_NAMES if kind == "name:" else ()))
-            if kind == "object/apply:" and tag[len(prefix + kind):] in PATH_CLASSES:
+            name = tag[len(prefix + kind):]
+            if kind == "object/apply:" and name in PATH_CLASSES:
                 return True
-            if target is None or not isinstance(target, type):
-                return False
-            if kind == "object:":
-                return dataclasses.is_dataclass(target)
-            if kind == "object/apply:":
-                return issubclass(target, enum.Enum)
-            return True
+            target = resolve_trusted_name(name, TRUSTED_MODULES + (TRUSTED_NAMES if kind == "name:" else ()))
+            return isinstance(target, type) and bool(test(target))
     return False
+
+
+def is_path_or_enum(target: type) -> bool:
+    """What `!!python/object/apply:` may call: an Enum class (a path is recognised by name before any import)."""
+    return issubclass(target, enum.Enum)
 
 
 def resolve_trusted_name(name: str, modules: tuple[str, ...]) -> Optional[object]:
     """The object `module.attribute` names when its module starts with one of `modules` (imported only then), else None."""
-    import importlib
-
     module, _, attribute = name.rpartition(".")
     if not module or not any(f"{module}.".startswith(prefix) for prefix in modules):
         return None

@@ -17,9 +17,13 @@ def build_teacher(config: TeacherConfig) -> Teacher:
         from sg_nerfstudio.features.dinov2 import Dinov2Teacher
 
         return Dinov2Teacher(config)
-    if config.name in ("offline", "dense-sift"):
+    if config.name in CELL_DESCRIPTORS:
         return _cell_descriptor(config.name)(config)
-    raise TeacherInputError(f"Unknown teacher {config.name!r}; expected 'dinov2', 'offline' or 'dense-sift'.")
+    raise TeacherInputError(f"Unknown teacher {config.name!r}; expected 'dinov2' or one of {', '.join(map(repr, CELL_DESCRIPTORS))}.")
+
+
+CELL_DESCRIPTORS = ("offline", "dense-sift", "hog-layout")
+"""The weight-free teachers."""
 
 
 def _cell_descriptor(name: str) -> type[CellDescriptor]:
@@ -28,6 +32,10 @@ def _cell_descriptor(name: str) -> type[CellDescriptor]:
         from sg_nerfstudio.features.dense_sift import DenseSiftTeacher
 
         return DenseSiftTeacher
+    if name == "hog-layout":
+        from sg_nerfstudio.features.hog_layout import HogLayoutTeacher
+
+        return HogLayoutTeacher
     from sg_nerfstudio.features.offline import OfflineTeacher
 
     return OfflineTeacher

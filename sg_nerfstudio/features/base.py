@@ -21,10 +21,11 @@ class TeacherInputError(InputError):
 class TeacherConfig:
     """The 2D feature extractor whose maps the feature splat distils (the paper's "teacher")."""
 
-    name: Literal["dinov2", "offline", "dense-sift"] = "dinov2"
+    name: Literal["dinov2", "offline", "dense-sift", "hog-layout"] = "dinov2"
     """dinov2: ViT-S/14 patch tokens (384-d, needs local weights); offline: dense oriented-gradient
     descriptor that needs no weights (for machines without DINOv2); dense-sift: kornia's dense RootSIFT
-    (128-d, no weights)."""
+    (128-d, no weights); hog-layout: the layout of oriented-gradient histograms at three scales (324-d, no
+    weights), made for photos against renders of a reference model."""
     input_size: Optional[int] = None
     """Long side the image is resized to before extraction (default 1400 for dinov2, a 100-patch grid as
     in the paper; 256 for offline, 32 cells). The aspect ratio is kept: the short side is rounded to a

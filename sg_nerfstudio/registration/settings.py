@@ -27,7 +27,7 @@ from sg_nerfstudio.errors import InputError
 ObjectiveKind = Literal["features", "teacher-on-render", "photometric"]
 RobustRule = Literal["lts", "outlier-lts", "fixed-lts", "irls", "none"]
 LossKind = Literal["l1", "l2"]
-RenderTeacher = Literal["offline", "dense-sift"]
+RenderTeacher = Literal["offline", "dense-sift", "hog-layout"]
 PRESETS = ("paper", "fast-cpu", "fast-cpu-features", "wide-cpu")
 
 

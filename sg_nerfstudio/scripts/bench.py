@@ -10,6 +10,10 @@ registration from its start, plus ablations and robustness runs on request (sg_n
 Writes `<output>/results.md` and `results.csv` (Table 1 layout, threshold sweeps, per-meta-image breakdown,
 ablations) and PNG robustness curves (bench/report.py). Resumable: run the same command again after an
 interruption and finished references and runs are reused.
+
+    sg-bench teacher PAIRS --output OUT [--teachers colour offline dense-sift hog-layout] [--dinov2-weights W]
+
+The teacher benchmark (bench/teacher.py) on photo/render pairs at a known pose (layout: bench/pairs.py).
 """
 
 from __future__ import annotations
@@ -20,14 +24,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal, Optional
 
+import torch
 import tyro
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio import cli
-from sg_nerfstudio.atomic import check_apart_from_inputs, check_output_path, output_lock
+from sg_nerfstudio.atomic import OutputPathError, atomic_directory, check_apart_from_inputs, check_new_output_directory, check_output_path, output_lock
 from sg_nerfstudio.bench.layout import read_benchmark
+from sg_nerfstudio.bench.pairs import read_pairs
 from sg_nerfstudio.bench.report import write_results
+from sg_nerfstudio.bench.teacher import BASELINE, build_describers, run_pairs
+from sg_nerfstudio.bench.teacher_report import landscape_figure, summarise, write_report
 from sg_nerfstudio.bench.runs import ABLATIONS, BenchOptions, SceneRunner, read_records, train_reference
 from sg_nerfstudio.bench.twins import TwinSceneRunner, build_twins
 from sg_nerfstudio.geometry.meta_image import load_meta_image
@@ -39,6 +47,7 @@ from sg_nerfstudio.errors import cli_main
 
 Start = Literal["colmap", "generalized", "perturbed"]
 Ablation = Literal[tuple(ABLATIONS)]  # type: ignore[valid-type]
+BenchTeacher = Literal[BASELINE, "offline", "dense-sift", "hog-layout", "dinov2"]  # type: ignore[valid-type]
 
 
 @dataclass
@@ -153,8 +162,61 @@ def describe(record: dict) -> str:
     return f"{where}: {before} -> ΔR {record['after']['dR']:.2f}° ΔT {record['after']['dT']:.3f} ({record['refine_time_s']:.0f} s)"
 
 
+@dataclass
+class TeacherBenchArgs:
+    """How well each teacher's maps single out a photo's true pose against a render of the reference (bench/teacher.py),
+    on a folder of photo/render pairs; writes teacher-benchmark.json, teacher-benchmark.md and landscapes.png."""
+
+    pairs: Annotated[Path, tyro.conf.Positional]
+    """Folder of <landmark>/photos/<name>.jpg and <landmark>/renders/<name>.jpg, each render made at its photo's pose
+    with its camera (bench/pairs.py)."""
+    output: Path
+    """Directory to create for the results."""
+    teachers: tuple[BenchTeacher, ...] = ("colour", "offline", "dense-sift", "hog-layout")
+    """Teachers to measure: colour is the photometric baseline (mean colour per cell, standardised per image); add dinov2
+    with --dinov2-weights."""
+    dinov2_weights: Optional[Path] = None
+    """Local DINOv2 ViT-S/14 weights (as TeacherConfig.weights); needed for the dinov2 teacher."""
+    dinov2_input_size: int = 448
+    """DINOv2's long side in pixels (448: 32 patches, the grid the other teachers have)."""
+    overwrite: bool = False
+    """Replace --output when it exists."""
+    threads: Optional[int] = None
+    """CPU threads of torch (default: the cores this process may use)."""
+
+
+def run_teacher(args: TeacherBenchArgs, console: Console) -> Path:
+    """Measure every teacher on every pair and write the report, the output appearing whole or not at all."""
+    started = time.perf_counter()
+    check_new_output_directory(args.output, args.overwrite, [args.pairs, args.dinov2_weights])
+    if args.pairs.resolve() in args.output.resolve().parents:
+        raise OutputPathError(f"Output directory {args.output} is inside the pairs folder {args.pairs}; expected it apart (the pairs are read, never written).")
+    set_threads(args.threads)
+    pairs = read_pairs(args.pairs)
+    describers = build_describers(args.teachers, args.dinov2_weights, args.dinov2_input_size)
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, console=console) as progress:
+        task = progress.add_task("Pairs", total=len(pairs))
+        records, shown = run_pairs(pairs, describers, lambda i: progress.update(task, completed=i + 1))
+    summary = summarise(records)
+    header = (f"Teacher benchmark on {args.pairs} ({len(pairs)} pairs, {len(summary['sift']) - 1} landmarks); "
+              f"wall time {time.perf_counter() - started:.0f} s on {torch.get_num_threads()} threads.")
+    with atomic_directory(args.output, overwrite=args.overwrite) as staging:
+        tables = write_report(staging, records, summary, header)
+        landscape_figure(staging / "landscapes.png", shown)
+    console.print(header)
+    for table in tables:
+        console.print(table)
+    console.print(f"Results: {args.output / 'teacher-benchmark.md'}, teacher-benchmark.json and landscapes.png")
+    return args.output
+
+
 def main(argv: Optional[list[str]] = None) -> int:
-    args = cli.parse(BenchArgs, args=list(sys.argv[1:] if argv is None else argv), prog="sg-bench")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["teacher"]:
+        teacher_args = cli.parse(TeacherBenchArgs, args=argv[1:], prog="sg-bench teacher")
+        return cli_main(lambda: run_teacher(teacher_args, Console()) and 0)
+    args = cli.parse(BenchArgs, args=argv, prog="sg-bench")
 
     def body() -> int:
         run(args, Console())

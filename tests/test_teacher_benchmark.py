@@ -132,3 +132,13 @@ def test_pairs_layout_errors_name_the_folder(tmp_path):
     assert [(p.landmark, p.name) for p in read_pairs(single)] == [("x", "frame_0"), ("x", "frame_1")]
     pairs = write_pairs(tmp_path / "pairs")
     assert bench_main(["teacher", str(pairs), "--output", str(pairs / "out"), "--teachers", "colour"]) == 1
+
+
+def test_dinov2_without_local_weights_names_the_benchmarks_flag(tmp_path, monkeypatch, capsys):
+    from sg_nerfstudio.features import dinov2
+
+    monkeypatch.setattr(dinov2, "weight_search_paths", lambda explicit: [tmp_path / "torch" / dinov2.TORCH_HUB_FILENAME])
+    pairs = write_pairs(tmp_path / "pairs")
+    assert bench_main(["teacher", str(pairs), "--output", str(tmp_path / "out"), "--teachers", "dinov2"]) == 1
+    assert "pass --dinov2-weights FILE or leave dinov2 out of --teachers" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -200,8 +200,12 @@ BASELINE = "colour"
 def build_describers(names: tuple[str, ...], dinov2_weights=None, dinov2_input_size: int = 448) -> dict[str, Describe]:
     """name -> Describe for the baseline and the package's teachers (each at its default input size; DINOv2 at
     `dinov2_input_size`, 32 patches, from local weights). TeacherInputError (one sentence) when one cannot load."""
-    from sg_nerfstudio.features import TeacherConfig, build_teacher
+    from sg_nerfstudio.features import TeacherConfig, TeacherInputError, build_teacher
+    from sg_nerfstudio.features.dinov2 import weight_search_paths
 
+    if "dinov2" in names and dinov2_weights is None and not any(path.exists() for path in weight_search_paths(None)):
+        listed = "; ".join(str(path) for path in weight_search_paths(None))
+        raise TeacherInputError(f"No DINOv2 ViT-S/14 weights found (looked at: {listed}); pass --dinov2-weights FILE or leave dinov2 out of --teachers.")
     describers: dict[str, Describe] = {}
     for name in names:
         if name == BASELINE:

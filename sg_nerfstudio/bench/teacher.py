@@ -68,7 +68,8 @@ def crop_side(height: int, width: int) -> int:
 def hypothesis_view(image: np.ndarray, side: int, shift: tuple[float, float] = (0.0, 0.0), angle: float = 0.0,
                     zoom: float = 1.0) -> np.ndarray:
     """The [side, side, 3] crop of `image` [H, W, 3] centred `shift` = (right, down) pixels from its centre, with the
-    content turned `angle` degrees (counter-clockwise on screen) and magnified `zoom` times (bilinear)."""
+    content turned `angle` degrees (clockwise on screen: what lies right of the centre comes to lie below it at 90°)
+    and magnified `zoom` times (bilinear)."""
     height, width = image.shape[:2]
     radians = math.radians(angle)
     turn = np.array([[math.cos(radians), math.sin(radians)], [-math.sin(radians), math.cos(radians)]]) / zoom

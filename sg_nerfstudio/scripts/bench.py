@@ -215,7 +215,12 @@ def main(argv: Optional[list[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["teacher"]:
         teacher_args = cli.parse(TeacherBenchArgs, args=argv[1:], prog="sg-bench teacher")
-        return cli_main(lambda: run_teacher(teacher_args, Console()) and 0)
+
+        def teacher_body() -> int:
+            run_teacher(teacher_args, Console())
+            return 0
+
+        return cli_main(teacher_body)
     args = cli.parse(BenchArgs, args=argv, prog="sg-bench")
 
     def body() -> int:

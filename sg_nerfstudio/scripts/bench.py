@@ -52,7 +52,8 @@ BenchTeacher = Literal[BASELINE, "offline", "dense-sift", "hog-layout", "dinov2"
 
 @dataclass
 class BenchArgs:
-    """Run the benchmark on every scene of a benchmark directory and write results.md / results.csv."""
+    """Run the benchmark on every scene of a benchmark directory and write results.md / results.csv. (The teacher
+    benchmark on photo/render pairs: `sg-bench teacher --help`.)"""
 
     benchmark: Annotated[Path, tyro.conf.Positional]
     """Benchmark directory (e.g. from `sg-make-scene --preset benchmark`)."""

@@ -38,7 +38,9 @@ class Pair:
 
 
 def read_pairs(folder: Path) -> list[Pair]:
-    """Every photo/render pair of `folder`, by landmark then name; PairsError for a wrong layout."""
+    """Every photo/render pair of `folder`, by landmark then name; PairsError for a wrong layout or an image that does
+    not decode or does not match its photo's size (every image is decoded once here, under a second for 300 of them,
+    so that a bad one is named before any teacher runs rather than minutes into the benchmark)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise PairsError(f"Pairs folder {folder} {not_a_directory(folder)}; expected a folder of <landmark>/photos/ and <landmark>/renders/.")
@@ -48,6 +50,8 @@ def read_pairs(folder: Path) -> list[Pair]:
     pairs = [pair for landmark in landmarks for pair in _landmark_pairs(landmark)]
     if not pairs:
         raise PairsError(f"Pairs folder {folder} holds no photos (expected images with a suffix among {', '.join(IMAGE_SUFFIXES)}).")
+    for pair in pairs:
+        read_pair(pair)
     return pairs
 
 

@@ -3,11 +3,15 @@
     sg-make-scene --preset tiny --output demo_scene
     sg-make-scene --preset default --output scenes/cathedral --seed 3 --occluder-rate 0.5
     sg-make-scene --preset benchmark --output bench            # a suite: bench/<scene>/ for each scene
+    sg-make-scene --preset gap --output scenes/gap             # the paper's setting: a Google-Earth-like reference
+    sg-make-scene --preset gap-benchmark --output gap-bench    # the benchmark's landmarks in that setting
     sg-make-scene --from-photos photos/ --cameras cameras/ --output real/fountain   # from real photos
 
 `--preset` picks the starting settings (see `sg_nerfstudio.synthetic.PRESETS`); every other flag
 overrides one of them (`sg-make-scene --preset tiny --help` lists them with the preset's values).
-A suite preset (`sg_nerfstudio.synthetic.generator.SUITES`: `benchmark`, `tiny-benchmark`) writes several
+Every scene holds its photo/render pairs at the true pose (`<scene>/pairs/`, `sg-bench teacher`'s layout); the
+builder prints their SIFT share and teacher identifiability beside the paper's own pairs' (bench/gap.py).
+A suite preset (`sg_nerfstudio.synthetic.generator.SUITES`: `benchmark`, `gap-benchmark`, `tiny-benchmark`) writes several
 scenes into `<output>/<scene name>/` plus `<output>/benchmark.json` naming them, the layout `sg-bench`
 reads; it takes only --output and --overwrite.
 `--from-photos PHOTOS` builds a scene from real photographs instead (sg_nerfstudio/photos/scene.py: the
@@ -21,6 +25,7 @@ import argparse
 import json
 import sys
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Optional
 
@@ -30,6 +35,7 @@ from rich.text import Text
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from sg_nerfstudio import cli
+from sg_nerfstudio.bench.gap import gap_sentence, measure_gap, pool
 from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
 from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.scene import RealSceneSettings, build_real_scene
@@ -105,14 +111,18 @@ def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
 def make_suite(name: str, args: SuiteArgs, console: Console) -> int:
     """Write every scene of the suite `name` into args.output, atomically as a whole."""
     check_new_output_directory(args.output, args.overwrite)
-    manifest = {"suite": name, "scenes": []}
+    manifest, gaps = {"suite": name, "scenes": []}, {}
     with atomic_directory(args.output, overwrite=args.overwrite) as staging, scene_progress(console) as progress:
         for scene_name, config in SUITES[name].items():
-            scene = generate_scene(config, staging / scene_name, progress=progress)
+            scene = generate_scene(config, staging / scene_name, progress=progress, measure_pairs=partial(measure_gap, progress=progress))
             manifest["scenes"].append({"name": scene_name, "meta_images": [m["name"] for m in scene["meta_images"]]})
-            console.print(f"{scene_name}: " + ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in scene["meta_images"]))
+            console.print(f"{scene_name}: " + ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in scene["meta_images"])
+                          + f"; {gap_sentence(scene['gap'])}", soft_wrap=True, markup=False)
+            gaps[scene_name] = scene["gap"]
+        manifest["gap"] = pool(gaps)
         (staging / "benchmark.json").write_text(json.dumps(manifest, indent=2))
-    console.print(f"Wrote the '{name}' suite of {len(manifest['scenes'])} scenes to {args.output}.")
+    console.print(f"Wrote the '{name}' suite of {len(manifest['scenes'])} scenes to {args.output}; all its photos: "
+                  f"{gap_sentence(manifest['gap'])}", soft_wrap=True, markup=False)
     return 0
 
 
@@ -148,11 +158,12 @@ def main(argv: list[str] | None = None) -> int:
 
 def make_scene(args: MakeSceneArgs, console: Console) -> int:
     with scene_progress(console) as progress:
-        manifest = generate_scene(args.scene, args.output, overwrite=args.overwrite, progress=progress)
+        manifest = generate_scene(args.scene, args.output, overwrite=args.overwrite, progress=progress, measure_pairs=partial(measure_gap, progress=progress))
     metas = ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in manifest["meta_images"])
     console.print(
         f"Wrote {args.output}: reference capture of {manifest['reference']['n_images']} views, "
-        f"meta-images {metas}, {manifest['reference']['n_points3D']} reference SfM points, in {manifest['wall_time_s']} s.",
+        f"meta-images {metas}, {manifest['reference']['n_points3D']} reference SfM points, in {manifest['wall_time_s']} s; "
+        + gap_sentence(manifest["gap"]),
         soft_wrap=True,
         markup=False,
     )

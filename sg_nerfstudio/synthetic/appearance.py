@@ -1,7 +1,9 @@
 """In-the-wild appearance: lighting of the landmark and per-photo camera/occluder effects.
 
-Reference renders get flat lighting on the smoothed albedo (the pseudo-synthetic look). Each photo of a
-meta-image gets its own sun, sky, exposure, white balance, gamma, sensor noise, blur and, for some
+Reference renders get the scene's `ReferenceLook`: by default flat lighting on the smoothed albedo (the
+pseudo-synthetic look); `EARTH_LOOK` adds what separates a Google Earth Studio render from a photo (a baked sun,
+washed-out colours, haze, low texture resolution), calibrated on the paper's photo/render pairs
+(docs/gap-scenes.md). Each photo of a meta-image gets its own sun, sky, exposure, white balance, gamma, sensor noise, blur and, for some
 photos, textured transient occluders (people, vehicles, trees) drawn over part of the frame before the
 camera effects.
 """
@@ -9,9 +11,12 @@ camera effects.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import cv2
 import numpy as np
+
+from sg_nerfstudio.synthetic.building import value_noise
 
 Array = np.ndarray
 
@@ -40,6 +45,81 @@ def sun_lighting(albedo: Array, normals: Array, look: PhotoLook) -> Array:
     direct = np.clip(normals @ look.sun_direction, 0.0, 1.0)[:, None]
     ambient = 0.55 + 0.1 * normals[:, 2:3]
     return np.clip(albedo * (ambient + look.sun_strength * direct), 0.0, 1.5)
+
+
+@dataclass
+class ReferenceLook:
+    """How the reference model's renders look: the images the reference splat is trained on, and the renders at each
+    photo's pose that `generator.py` writes as the scene's photo/render pairs. The defaults are the soft
+    pseudo-synthetic look of every scene before gap scenes existed (same pixels)."""
+
+    softness: float = 0.2
+    """Edge softness of the patterns in metres (the texture's resolution on the model)."""
+    sun_strength: float = 0.0
+    """One sun baked into every reference view (0: flat lighting): a render's light is not the photo's."""
+    sun_azimuth_deg: float = 135.0
+    sun_elevation_deg: float = 35.0
+    saturation: float = 1.0
+    """Colour saturation of the albedo (1: as the photos', 0: grey)."""
+    tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Per-channel gain of the render."""
+    haze: float = 0.0
+    """Aerial haze: the share of a pixel replaced by the haze colour is 1 - exp(-haze * depth in scene units)."""
+    haze_colour: tuple[float, float, float] = (0.78, 0.82, 0.86)
+    detail_scale: float = 1.0
+    """Resolution of the render relative to the image (1: full; 0.5: rendered at half size and scaled back up)."""
+    texture_misalignment: float = 0.0
+    """Largest displacement (metres) of the model's texture on its surfaces, smooth over MISALIGNMENT_CELL metres:
+    a model built from aerial imagery drapes its texture on coarse geometry, so windows and edges sit a little off."""
+
+    def shading(self):
+        """The reference's Shading (`raycast.Shading`): flat, or flat plus the baked sun, on the re-coloured albedo."""
+        return partial(_reference_shading, look=self)
+
+    def texture_coordinates(self, uv: Array, surface_index: int) -> Array:
+        """[n, 2] pattern coordinates (metres) where the model shows what lies at `uv` on surface `surface_index`: the
+        same for every view (the error belongs to the model)."""
+        if self.texture_misalignment <= 0:
+            return uv
+        offsets = [2.0 * value_noise(uv, MISALIGNMENT_CELL, 7919 * surface_index + axis) - 1.0 for axis in (1, 2)]
+        return uv + self.texture_misalignment * np.stack(offsets, axis=1)
+
+    def finish(self, image: Array, depth: Array) -> Array:
+        """Haze, tint and texture resolution on a rendered [H, W, 3] image with its depth [H, W] (inf = sky)."""
+        out = np.asarray(image, np.float64)
+        if self.haze > 0:
+            weight = 1.0 - np.exp(-self.haze * np.where(np.isfinite(depth), depth, 1e3))
+            out = out * (1.0 - weight[..., None]) + np.asarray(self.haze_colour) * weight[..., None]
+        out = out * np.asarray(self.tint)[None, None]
+        if self.detail_scale < 1.0:
+            height, width = out.shape[:2]
+            small = (max(int(round(width * self.detail_scale)), 1), max(int(round(height * self.detail_scale)), 1))
+            out = cv2.resize(cv2.resize(out.astype(np.float32), small, interpolation=cv2.INTER_AREA), (width, height), interpolation=cv2.INTER_LINEAR)
+        return np.clip(out, 0.0, 1.0)
+
+
+MISALIGNMENT_CELL = 6.0
+"""Feature size (metres) of the texture misalignment: a storey or two."""
+
+
+def _reference_shading(albedo: Array, normals: Array, look: ReferenceLook) -> Array:
+    if look.saturation != 1.0:
+        grey = albedo.mean(axis=1, keepdims=True)
+        albedo = grey + look.saturation * (albedo - grey)
+    if look.sun_strength <= 0:
+        return flat_lighting(albedo, normals)
+    elevation, azimuth = np.deg2rad(look.sun_elevation_deg), np.deg2rad(look.sun_azimuth_deg)
+    sun = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    direct = np.clip(normals @ sun, 0.0, 1.0)[:, None]
+    return np.clip(albedo * (0.6 + 0.08 * normals[:, 2:3] + look.sun_strength * direct), 0.0, 1.0)
+
+
+EARTH_LOOK = ReferenceLook(
+    softness=0.6, sun_strength=0.6, saturation=0.6, tint=(0.95, 0.98, 1.04), haze=0.25, detail_scale=0.5,
+    texture_misalignment=1.0,
+)
+"""Google-Earth-like renders: calibrated so that generated photo/render pairs land in the range of the paper's own
+pairs (SIFT share and teacher identifiability at the true pose; docs/gap-scenes.md)."""
 
 
 def random_look(strength: float, rng: np.random.Generator) -> PhotoLook:

@@ -121,7 +121,7 @@ def _hash_noise(ij: Array, seed: int) -> Array:
     return ((h % 1000003) / 1000003.0).astype(np.float64)
 
 
-def _value_noise(uv: Array, cell: float, seed: int) -> Array:
+def value_noise(uv: Array, cell: float, seed: int) -> Array:
     """Smooth noise in [0, 1) with features of about `cell` metres: hashed lattice values, smoothstep-interpolated."""
     scaled = uv / cell
     corner = np.floor(scaled)
@@ -145,7 +145,7 @@ def weathering(uv: Array, softness: float, seed: int, strength: float = 1.0) -> 
     factor = np.ones(len(uv))
     for octave, (cell, amplitude) in enumerate(WEATHERING_OCTAVES):
         if cell >= softness:
-            factor += strength * amplitude * (2 * _value_noise(uv, cell, seed * 31 + octave) - 1)
+            factor += strength * amplitude * (2 * value_noise(uv, cell, seed * 31 + octave) - 1)
     return factor
 
 

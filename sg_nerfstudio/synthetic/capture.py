@@ -73,9 +73,11 @@ SIDE_AZIMUTH_DEG = {"front": -90.0, "right": 0.0, "rear": 90.0, "left": 180.0}
 def meta_image_shots(
     side: str, n_photos: int, ring_radius: float, eye_height: float, facade_size: tuple[float, float],
     base_size: tuple[int, int], distortion: float, rng: np.random.Generator, name_prefix: str,
+    distance_range: tuple[float, float] = (0.65, 1.25),
 ) -> list[Shot]:
     """Tourist photos of one side: ground-level viewpoints within +-40 deg of the facade normal, each
-    with its own focal length, image size and orientation (landscape/portrait), some with radial distortion."""
+    with its own focal length, image size and orientation (landscape/portrait), some with radial distortion, at
+    `distance_range` ring radii from the landmark's centre."""
     shots = []
     facade_width, facade_height = facade_size
     base_w, base_h = base_size
@@ -83,7 +85,7 @@ def meta_image_shots(
     side_azimuth = np.deg2rad(SIDE_AZIMUTH_DEG[side])
     for i in range(n_photos):
         azimuth = side_azimuth + np.deg2rad(rng.uniform(-40, 40))
-        distance = ring_radius * rng.uniform(0.65, 1.25)
+        distance = ring_radius * rng.uniform(*distance_range)
         eye = np.array([distance * np.cos(azimuth), distance * np.sin(azimuth), eye_height * rng.uniform(0.7, 1.3)])
         along = np.array([-np.sin(side_azimuth), np.cos(side_azimuth), 0.0])
         target = along * rng.uniform(-0.25, 0.25) * facade_width + np.array([0, 0, rng.uniform(0.25, 0.6) * facade_height])

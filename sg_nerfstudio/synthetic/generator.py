@@ -9,6 +9,8 @@ Output layout (written atomically: a temporary sibling directory renamed into pl
     <scene>/meta/<name>/images/*.png        in-the-wild photos of one side
     <scene>/meta/<name>/sparse/0/           COLMAP model in the meta-image's own frame (random Sim(3))
     <scene>/meta/<name>/gt_transform.json   Sim(3) meta -> reference: x_ref = scale * R @ x_meta + t
+    <scene>/pairs/<name>/photos|renders/    each photo and the reference's look rendered at its true pose: the
+                                            layout `sg-bench teacher` reads; scene.json's "gap" measures them
 
 Scene unit: the reference world is scaled so that the median distance of the reference cameras to their
 centroid is 1; errors (e.g. a registration's translation error) are stated in that unit.
@@ -21,6 +23,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -30,7 +33,7 @@ from rich.progress import Progress
 from sg_nerfstudio.atomic import atomic_directory, check_new_output_directory
 from sg_nerfstudio.errors import InputError, range_problem
 from sg_nerfstudio.synthetic.appearance import (
-    apply_camera_effects, draw_occluders, flat_lighting, random_look, sun_lighting,
+    EARTH_LOOK, ReferenceLook, apply_camera_effects, draw_occluders, random_look, sun_lighting,
 )
 from sg_nerfstudio.synthetic.building import BuildingConfig, Surface, build_landmark, landmark_surfaces
 from sg_nerfstudio.synthetic.capture import SIDE_AZIMUTH_DEG, Shot, meta_image_shots, reference_shots
@@ -40,9 +43,6 @@ Array = np.ndarray
 REFERENCE_BACKGROUND = np.array([0.80, 0.85, 0.90])
 PHOTO_SOFTNESS = 0.04
 """Edge softness of the patterns in photos (metres): crisp, with the fine stone and paving texture."""
-REFERENCE_SOFTNESS = 0.2
-"""Edge softness of the patterns in reference renders (metres): the blurred, texture-poor look of
-pseudo-synthetic (Google-Earth-like) renders."""
 
 
 @dataclass
@@ -73,6 +73,8 @@ class SceneConfig:
     """Meta-images as SIDE:N_PHOTOS, side one of front, rear, left, right (each side once); named after the side."""
     photo_size: tuple[int, int] = (160, 120)
     """Base photo size (width, height); photos vary around it and may be portrait."""
+    photo_distance: tuple[float, float] = (0.65, 1.25)
+    """Range of the photos' distance to the landmark's centre, in ring radii (lower: more close-ups of a facade)."""
     appearance_strength: float = 1.0
     """0 = photos lit and exposed like the reference, 1 = strong in-the-wild variation."""
     occluder_rate: float = 0.3
@@ -85,10 +87,18 @@ class SceneConfig:
     """Range of the random meta-image frame scale."""
     n_sparse_points: int = 4000
     """Largest number of points in each COLMAP model's sparse point cloud."""
+    reference_look: ReferenceLook = field(default_factory=ReferenceLook)
+    """How the reference's renders differ from the photos (appearance.ReferenceLook; EARTH_LOOK for gap scenes)."""
 
+
+GAP_PHOTO_DISTANCE = (0.5, 1.25)
+"""Photo distances of gap scenes (ring radii): Internet photos include close-ups of a facade, where a coarse model's
+render has the least to show."""
 
 PRESETS: dict[str, SceneConfig] = {
     "default": SceneConfig(),
+    # The paper's setting: the reference is a Google-Earth-like model (EARTH_LOOK), the photos include close-ups.
+    "gap": SceneConfig(reference_look=EARTH_LOOK, photo_distance=GAP_PHOTO_DISTANCE),
     "tiny": SceneConfig(
         building=BuildingConfig(n_gaussians=4000, window_cols=4),
         reference_size=(48, 36), n_ring=10, n_aerial=6,
@@ -124,6 +134,11 @@ SUITES: dict[str, dict[str, SceneConfig]] = {
     },
 }
 """Benchmark suites: several scenes written side by side (the layout `sg-bench` reads)."""
+# `sg-make-scene --preset gap-benchmark`: the benchmark's landmarks in the paper's setting (the "gap" preset's reference
+# look and photo distances): SIFT across photo and reference is as rare as on the paper's pairs (docs/gap-scenes.md).
+SUITES["gap-benchmark"] = {
+    name: replace(config, reference_look=EARTH_LOOK, photo_distance=GAP_PHOTO_DISTANCE) for name, config in SUITES["benchmark"].items()
+}
 
 
 class SceneGenerationError(InputError):
@@ -148,7 +163,11 @@ SCENE_RANGES = {
     "n_aerial": dict(whole=True, minimum=0), "ring_radius_ratio": dict(above=0), "appearance_strength": dict(minimum=0),
     "occluder_rate": dict(minimum=0, maximum=1), "occluder_coverage": dict(minimum=0, maximum=1), "distortion": dict(minimum=0, maximum=0.5),
     "meta_scale_range": dict(above=0), "n_sparse_points": dict(whole=True, minimum=1), "reference_size": dict(whole=True, minimum=16),
-    "photo_size": dict(whole=True, minimum=16),
+    "photo_size": dict(whole=True, minimum=16), "photo_distance": dict(above=0),
+    "reference_look.softness": dict(minimum=0), "reference_look.sun_strength": dict(minimum=0),
+    "reference_look.saturation": dict(minimum=0), "reference_look.tint": dict(minimum=0), "reference_look.haze": dict(minimum=0),
+    "reference_look.haze_colour": dict(minimum=0, maximum=1), "reference_look.detail_scale": dict(above=0, maximum=1),
+    "reference_look.texture_misalignment": dict(minimum=0),
     "building.width": dict(above=0), "building.depth": dict(above=0), "building.height": dict(above=0),
     "building.towers": dict(whole=True, minimum=0), "building.tower_height_ratio": dict(above=0),
     "building.window_rows": dict(whole=True, minimum=0), "building.window_cols": dict(whole=True, minimum=0),
@@ -167,8 +186,8 @@ def validate(config: SceneConfig) -> None:
             problem = range_problem(entry, **bounds)
             if problem:
                 raise SceneGenerationError(f"Scene setting --{name.replace('_', '-')} must be {problem}, got {entry!r}.")
-    if config.occluder_coverage[0] > config.occluder_coverage[1] or config.meta_scale_range[0] > config.meta_scale_range[1]:
-        raise SceneGenerationError("Scene ranges occluder_coverage and meta_scale_range must list their lower bound first.")
+    if any(low > high for low, high in (config.occluder_coverage, config.meta_scale_range, config.photo_distance)):
+        raise SceneGenerationError("Scene ranges occluder_coverage, meta_scale_range and photo_distance must list their lower bound first.")
     specs = meta_image_specs(config)
     if config.n_ring + config.n_aerial < 3:
         raise SceneGenerationError(f"A reference capture needs at least 3 views, got n_ring + n_aerial = {config.n_ring + config.n_aerial}.")
@@ -306,16 +325,23 @@ def sim3_record(sim3: pycolmap.Sim3d) -> dict:
     }
 
 
-def generate_scene(config: SceneConfig, output: Path, overwrite: bool = False, progress: Progress | None = None) -> dict:
-    """Generate the scene into `output` (atomically) and return the manifest written to scene.json."""
+MeasurePairs = Callable[[Path], dict]
+"""The pairs folder of a scene -> its gap record (`bench.gap.measure_gap`, which `sg-make-scene` passes)."""
+
+
+def generate_scene(
+    config: SceneConfig, output: Path, overwrite: bool = False, progress: Progress | None = None, measure_pairs: MeasurePairs | None = None,
+) -> dict:
+    """Generate the scene into `output` (atomically) and return the manifest written to scene.json; `measure_pairs`
+    fills its "gap" record before anything is moved into place."""
     validate(config)
     output = Path(output)
     check_new_output_directory(output, overwrite)
     with atomic_directory(output, overwrite=overwrite) as staging:
-        return _generate_into(config, staging, progress)
+        return _generate_into(config, staging, progress, measure_pairs)
 
 
-def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -> dict:
+def _generate_into(config: SceneConfig, root: Path, progress: Progress | None, measure_pairs: MeasurePairs | None) -> dict:
     started = time.perf_counter()
     rng = np.random.default_rng(config.seed)
     b = config.building
@@ -342,8 +368,7 @@ def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -
 
     ref_renders = []
     for shot in ref_shots:
-        image, depth = raycast_shot(surfaces, flat_lighting, REFERENCE_SOFTNESS, shot, REFERENCE_BACKGROUND, 1.0 / unit)
-        image = np.clip(image, 0.0, 1.0)
+        image, depth = reference_render(config.reference_look, surfaces, shot, unit)
         ref_renders.append(RenderedShot(shot, image, depth, {}))
         advance()
     write_images(ref_renders, root / "reference" / "images")
@@ -365,19 +390,30 @@ def _generate_into(config: SceneConfig, root: Path, progress: Progress | None) -
         manifest["meta_images"].append(
             _generate_meta_image(spec, config, scene, surfaces, ring_radius, unit, rng, root, advance)
         )
+    manifest["gap"] = measure_pairs(root / "pairs") if measure_pairs else {"measured": False, "why": "no measure was asked for"}
     manifest["wall_time_s"] = round(time.perf_counter() - started, 2)
     (root / "scene.json").write_text(json.dumps(manifest, indent=2))
     return manifest
+
+
+def reference_render(look: ReferenceLook, surfaces: list[Surface], shot: Shot, unit: float) -> tuple[Array, Array]:
+    """The reference model rendered at `shot` in `look`: image [H, W, 3] in [0, 1] and depth [H, W] (scene units)."""
+    image, depth = raycast_shot(
+        surfaces, look.shading(), look.softness, shot, REFERENCE_BACKGROUND, 1.0 / unit, texture_coordinates=look.texture_coordinates
+    )
+    return look.finish(image, depth), depth
 
 
 def _generate_meta_image(spec, config, scene, surfaces: list[Surface], ring_radius, unit, rng, root, advance) -> dict:
     b = config.building
     facade = (b.width if spec.side in ("front", "rear") else b.depth, b.height)
     shots = scale_shots(
-        meta_image_shots(spec.side, spec.n_photos, ring_radius, 1.7, facade, config.photo_size, config.distortion, rng, spec.name),
+        meta_image_shots(
+            spec.side, spec.n_photos, ring_radius, 1.7, facade, config.photo_size, config.distortion, rng, spec.name, config.photo_distance
+        ),
         unit,
     )
-    renders = []
+    renders, pair_renders = [], []
     for shot in shots:
         look = random_look(config.appearance_strength, rng)
         image, depth = raycast_shot(surfaces, partial(sun_lighting, look=look), PHOTO_SOFTNESS, shot, look.sky, 1.0 / unit)
@@ -393,9 +429,12 @@ def _generate_meta_image(spec, config, scene, surfaces: list[Surface], ring_radi
             "cam_from_world_reference": pose_matrix(shot.cam_from_world),
         }
         renders.append(RenderedShot(shot, image, depth, metadata))
+        pair_renders.append(RenderedShot(shot, reference_render(config.reference_look, surfaces, shot, unit)[0], depth, {}))
         advance()
     directory = root / "meta" / spec.name
     write_images(renders, directory / "images")
+    write_images(renders, root / "pairs" / spec.name / "photos")
+    write_images(pair_renders, root / "pairs" / spec.name / "renders")
     points, observations = sparse_tracks(scene.means, renders, config.n_sparse_points, rng)
     recon = build_reconstruction(renders, points, observations, shared_camera=False)
     gt_meta_to_ref = random_sim3(rng, config.meta_scale_range)
@@ -418,6 +457,8 @@ def read_scene_config(scene: Path) -> SceneConfig:
     record = json.loads((Path(scene) / "scene.json").read_text())["config"]
     values = {key: tuple(value) if isinstance(value, list) else value for key, value in record.items()}
     values["building"] = BuildingConfig(**record["building"])
+    if "reference_look" in record:  # scenes written before gap scenes have the default look
+        values["reference_look"] = ReferenceLook(**{k: tuple(v) if isinstance(v, list) else v for k, v in record["reference_look"].items()})
     return SceneConfig(**values)
 
 

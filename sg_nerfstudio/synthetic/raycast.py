@@ -71,7 +71,7 @@ def cast(surfaces: list[Surface], centre: Array, rays: Array) -> tuple[Array, Ar
 
 def raycast_shot(
     surfaces: list[Surface], shading: Shading, softness: float, shot: Shot, background: Array,
-    metres_per_unit: float, samples_per_side: int = 3,
+    metres_per_unit: float, samples_per_side: int = 3, texture_coordinates: Callable[[Array, int], Array] | None = None,
 ) -> tuple[Array, Array]:
     """Render one shot of the surfaces, supersampled s x s per pixel and box-filtered.
 
@@ -79,6 +79,8 @@ def raycast_shot(
         shading: turns the patterns' albedo and the surface normals into radiance (flat or sun lighting).
         softness: edge softness of the patterns in metres (sharp for photos, soft for reference renders).
         background: [3] radiance where no surface is hit (sky).
+        texture_coordinates: (uv [n, 2], surface index) -> the uv whose pattern is shown (a model's misplaced texture);
+            None shows each point's own pattern.
 
     Returns:
         image [H, W, 3] in [0, 1.5] (linear radiance) and depth [H, W] along the camera's z axis in scene
@@ -91,7 +93,8 @@ def raycast_shot(
     for index, surface in enumerate(surfaces):
         hit = which == index
         if hit.any():
-            radiance[hit] = shading(surface.pattern(uv[hit], softness), normals[hit])
+            shown = uv[hit] if texture_coordinates is None else texture_coordinates(uv[hit], index)
+            radiance[hit] = shading(surface.pattern(shown, softness), normals[hit])
     image = radiance.reshape(height, width, s2, 3).mean(axis=2)
     t = t.reshape(height, width, s2)
     hits = np.isfinite(t)

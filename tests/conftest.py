@@ -134,6 +134,7 @@ SLOW_TESTS = {
     "tests/test_initialisers.py::test_initialisers_recover_the_ground_truth_on_clean_renders": "~6 s each",
     "tests/test_initialisers.py::test_photos_too_weak_to_register_alone_lend_their_rig_inliers_as_anchors": "~8 s",
     "tests/test_render.py::test_gradcheck_all_gaussian_parameters_and_viewmats[numba]": "float64 gradcheck through numba: ~10 s",
+    "tests/test_dense_init.py::test_auto_falls_back_to_the_dense_start_where_sift_gives_none": "a small gap scene, SIFT and the dense start: ~17 s",
     "tests/test_gap_scenes.py::test_a_gap_scene_holds_its_photo_render_pairs_and_their_gap_measure": "a gap scene and its gap measure: ~11 s",
 }
 """Tests slow on their own, over ~3 s on the 2-core CI machine (2026-12-06, numba's cache warm): node id -> why. An id

@@ -18,7 +18,7 @@ ALLOWED = {
     "features": set(),
     "synthetic": set(),
     "splat": {"features", "render", "geometry"},
-    "initialisers": {"geometry", "splat"},
+    "initialisers": {"geometry", "features", "splat"},
     "registration": {"geometry", "features", "render", "splat", "initialisers"},
     "viewer": {"geometry", "splat"},
     "photos": {"geometry", "initialisers", "synthetic"},

@@ -6,7 +6,7 @@ references are kept in `<output>/references/<scene>/` and reused the same way.
 
 Runs per meta-image (`RunSpec.name`):
 - `<initialiser>` for each of `--initialisers`: `colmap` / `generalized` (sg_nerfstudio.initialisers, the
-  paper's baselines) or `perturbed` (the ground truth moved by 5°, 0.1 and 10% in random directions about
+  paper's baselines), `dense` / `auto` (the SIFT-free start, and the first start of the three) or `perturbed` (the ground truth moved by 5°, 0.1 and 10% in random directions about
   the cameras' centroid, the synthetic start of the accuracy benchmark); the record holds the start's
   errors (Table 1's baseline rows) and the registration's (the "ours (... init)" rows); `<initialiser>@<preset>`
   for each of `--compare-config` (the same start, computed once, another preset);

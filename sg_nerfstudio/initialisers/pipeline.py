@@ -10,6 +10,9 @@
                  one photo's pose and the scale of its depths (`one_photo_start`), else a failure.
     generalized  the photos' 2D-3D correspondences are pooled and the meta-image is solved as one
                  generalized camera (estimate.generalized_similarity): our analogue of gDLS+++.
+    dense        no SIFT: each photo placed among the reference images by its teacher map, one Sim(3) that
+                 most photos agree with (dense.py); for references SIFT cannot match (renders of a coarse model)
+    auto         colmap, then generalized, then dense: the first that gives a start (its note says which)
 
 A failure is a result with `failure` set to one sentence and no transform, never an exception; bad
 inputs (missing reference model or images) raise InputError subclasses.
@@ -43,6 +46,7 @@ from sg_nerfstudio.initialisers.estimate import (
     similarity_from_one_photo,
     similarity_from_poses,
 )
+from sg_nerfstudio.initialisers.dense import DenseInitSettings, ReferenceMaps, dense_start
 from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, SiftSettings, VerifiedMatcher, default_cache_dir
 from sg_nerfstudio.initialisers.reference_cloud import (
     PairingSettings,
@@ -59,8 +63,8 @@ from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.splat.trained import read_trainer_config
 
 Array = np.ndarray
-Method = Literal["colmap", "generalized"]
-METHODS: tuple[str, ...] = ("colmap", "generalized")
+Method = Literal["colmap", "generalized", "dense", "auto"]
+METHODS: tuple[str, ...] = ("colmap", "generalized", "dense", "auto")
 
 
 RIG_ANCHOR_MIN_INLIERS = 6
@@ -101,6 +105,7 @@ class InitialiserSettings:
     pairing: PairingSettings = field(default_factory=PairingSettings)
     absolute_pose: AbsolutePoseSettings = field(default_factory=AbsolutePoseSettings)
     generalized: GeneralizedSettings = field(default_factory=GeneralizedSettings)
+    dense: DenseInitSettings = field(default_factory=DenseInitSettings)
 
     def resolved_cache_dir(self) -> Path:
         return Path(self.cache_dir) if self.cache_dir is not None else default_cache_dir()
@@ -212,6 +217,7 @@ class Initialiser:
         self._index: Optional[VisualWordIndex] = None
         self._observations: dict[tuple, list[Observations]] = {}
         self._generalized_poses: dict[tuple, Optional[GeneralizedPose]] = {}
+        self._reference_maps: Optional[ReferenceMaps] = None
 
     @property
     def cloud(self) -> ReferenceCloud:
@@ -238,13 +244,58 @@ class Initialiser:
             raise ValueError(f"unknown initialiser {method!r}")
         pycolmap.set_random_seed(self.settings.matching.seed)
         start = time.perf_counter()
-        observations = self.observations(meta)
-        if method == "colmap":
-            result = self._colmap(meta, observations)
+        if method == "auto":
+            result = self._auto(meta)
+        elif method == "dense":
+            result = self._dense(meta)
+        elif method == "colmap":
+            result = self._colmap(meta, self.observations(meta))
         else:
-            result = self._generalized(meta, observations)
+            result = self._generalized(meta, self.observations(meta))
         result.wall_time_s = time.perf_counter() - start
         return result
+
+    def _auto(self, meta: MetaImage) -> InitResult:
+        """colmap, generalized, dense: the first start found, with a note naming it and why the others gave none. A
+        reference whose SIFT cloud cannot be built (too few points: a reference of renders) goes to dense directly."""
+        reasons = []
+        self.check_reference()  # a missing or unreadable reference is the user's to fix, not a SIFT failure
+        try:
+            observations = self.observations(meta)
+        except InputError as error:  # the reference's SIFT cloud could not be built
+            reasons.append(f"SIFT: {str(error).rstrip('.')}")
+            observations = None
+        if observations is not None:
+            for method, run in (("colmap", self._colmap), ("generalized", self._generalized)):
+                result = run(meta, observations)
+                if result.succeeded:
+                    result.note = "; ".join(filter(None, [f"auto: the {method} start" + (f" ({'; '.join(reasons)})" if reasons else ""), result.note]))
+                    return result
+                reasons.append(result.failure.rstrip("."))
+        result = self._dense(meta)
+        result.note = "; ".join(filter(None, [f"auto: the dense start, as SIFT gave none ({'; '.join(reasons)})" if result.succeeded else None, result.note]))
+        if not result.succeeded:
+            result.failure = f"Initialisation 'auto' failed for meta-image '{meta.name}': {'; '.join(reasons + [result.failure.rstrip('.')])}."
+        return result
+
+    def reference_maps(self) -> ReferenceMaps:
+        """The reference images' teacher maps for the dense initialiser, built once."""
+        if self._reference_maps is None:
+            advance = self.progress("Teacher maps of the reference images", 1)
+            self._reference_maps = ReferenceMaps(self.source.load(), self.source.images_path, self.settings.dense)
+            advance()
+        return self._reference_maps
+
+    def _dense(self, meta: MetaImage) -> InitResult:
+        reference = self.reference_maps()
+        advance = self.progress(f"Placing photos of {meta.name} among the reference images", 1)
+        start = dense_start(meta, reference)
+        advance()
+        photos = [PhotoPose(photo.name, None, 0, 0) for photo in meta.photos]
+        if start.transform is None:
+            return self._failure("dense", meta, photos, start.failure)
+        note = f"dense: {len(start.agreeing_photos)} of {len(meta.photos)} photos agree ({reference.settings.teacher} maps)"
+        return InitResult("dense", meta.name, start.transform, None, photos, start.agreeing_photos, 0.0, note=note)
 
     def keypoints(self, meta: MetaImage) -> list[PhotoKeypoints]:
         """Per photo that registers to the reference on its own (`register_photo`), its RANSAC-inlier 2D-3D

@@ -71,13 +71,15 @@ class RegistrationJob:
     init: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """Initial transform meta -> reference world: 'identity' (the default), 'colmap' (photos registered into
     the reference COLMAP model, Sim(3) from their centres), 'generalized' (the meta-image as one
-    generalized camera, our gDLS+++ analogue), or a JSON file with a 4x4 "matrix" (transform.json /
-    gt_transform.json format); once for all meta-images or once per meta-image."""
+    generalized camera, our gDLS+++ analogue), 'dense' (no SIFT: the photos placed among the reference images by
+    teacher maps, for references SIFT cannot match such as renders of a coarse model), 'auto' (colmap, then
+    generalized, then dense: the first that gives a start, and it says which), or a JSON file with a 4x4 "matrix"
+    (transform.json / gt_transform.json format); once for all meta-images or once per meta-image."""
     reference_colmap: Optional[Path] = None
-    """For --init colmap/generalized: the reference's COLMAP model (default: the trained config's dataparser
+    """For --init colmap/generalized/dense/auto: the reference's COLMAP model (default: the trained config's dataparser
     data / colmap_path)."""
     reference_images: Optional[Path] = None
-    """For --init colmap/generalized: the reference's images (default: the dataparser's data / images_path)."""
+    """For --init colmap/generalized/dense/auto: the reference's images (default: the dataparser's data / images_path)."""
     init_max_error: Optional[float] = None
     """For --init colmap: RANSAC inlier distance (reference world units) of the Sim(3) from camera centres;
     default 5% of the median distance of the reference cameras to their centroid."""
@@ -122,7 +124,7 @@ def read_initial_transform(value: str) -> Optional[Sim3]:
     if value == "identity":
         return Sim3.identity()
     if not Path(value).is_file():
-        raise ArgumentError(f"Initial transform file {value} does not exist; expected 'identity', 'colmap', 'generalized' or a JSON file.")
+        raise ArgumentError(f"Initial transform file {value} does not exist; expected 'identity', 'colmap', 'generalized', 'dense', 'auto' or a JSON file.")
     return Sim3.read_json(Path(value), "Initial transform")
 
 

@@ -45,7 +45,7 @@ from sg_nerfstudio.registration.settings import PRESETS, load_preset
 from sg_nerfstudio.render.threads import set_threads
 from sg_nerfstudio.errors import cli_main
 
-Start = Literal["colmap", "generalized", "perturbed"]
+Start = Literal["colmap", "generalized", "dense", "auto", "perturbed"]
 Ablation = Literal[tuple(ABLATIONS)]  # type: ignore[valid-type]
 BenchTeacher = Literal[BASELINE, "offline", "dense-sift", "hog-layout", "dinov2"]  # type: ignore[valid-type]
 
@@ -65,8 +65,9 @@ class BenchArgs:
     """Training steps of each reference model (CPU, offline teacher); 1500 trains each reference of the default
     suite in under 2 minutes on a 2-core CPU (93-107 s measured; the demo and the feature benchmark train 3000)."""
     initialisers: tuple[Start, ...] = ("colmap", "generalized")
-    """Starts of Table 1: the SIFT + pycolmap initialisers (the paper's rows); add `perturbed` for the ground
-    truth moved by 5° / 0.1 / 10% (a start that does not depend on SIFT; one more registration per meta-image)."""
+    """Starts of Table 1: the SIFT + pycolmap initialisers (the paper's rows); `dense` (no SIFT: teacher maps) and
+    `auto` (colmap, generalized, then dense); add `perturbed` for the ground truth moved by 5° / 0.1 / 10% (a start
+    that does not depend on SIFT; one more registration per meta-image)."""
     ablations: tuple[Ablation, ...] = ()
     """Ablation rows to run from the perturbed start (e.g. full photometric l2 none outlier-lts fixed-lts irls)."""
     noise_levels: tuple[float, ...] = ()

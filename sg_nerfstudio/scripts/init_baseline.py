@@ -56,9 +56,10 @@ class InitBaselineArgs:
     """The reference's COLMAP model (overrides the config's)."""
     reference_images: Optional[Path] = None
     """The reference's images (overrides the config's)."""
-    init: Literal["colmap", "generalized"] = "colmap"
+    init: Literal["colmap", "generalized", "dense", "auto"] = "colmap"
     """'colmap': photos registered one by one, Sim(3) from their centres; 'generalized': the meta-image as one
-    generalized camera (our analogue of gDLS+++)."""
+    generalized camera (our analogue of gDLS+++); 'dense': no SIFT, the photos placed among the reference images by
+    teacher maps; 'auto': colmap, generalized, then dense, the first that gives a start."""
     gt: Annotated[tuple[Path, ...], tyro.conf.UseAppendAction] = ()
     """Ground-truth transform (gt_transform.json) per meta-image, in order, to report ΔR / ΔT."""
     overwrite: bool = False

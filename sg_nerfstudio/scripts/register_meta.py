@@ -1,7 +1,7 @@
 """`ns-register-meta`: ground meta-images in a frozen sg-feature-splat reference model.
 
     ns-register-meta --load-config outputs/.../config.yml --meta-image scene/meta/front \\
-        --output-dir registrations [--init identity|colmap|generalized|init.json] \\
+        --output-dir registrations [--init identity|colmap|generalized|dense|auto|init.json] \\
         [--gt scene/meta/front/gt_transform.json] [--config fast-cpu] [--optimiser.steps 400 ...]
 
 `--config` names a registration preset (paper, fast-cpu, fast-cpu-features) or a YAML file of the settings;

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sg_nerfstudio.errors import InputError
-from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
+from sg_nerfstudio.geometry.sim3 import Sim3
 
 Array = np.ndarray
 

@@ -98,6 +98,8 @@ def test_auto_falls_back_to_the_dense_start_where_sift_gives_none(gap_scene, tmp
     errors = pose_errors([p.cam_from_world for p in meta.photos], result.transform, truth)
     assert errors.rotation_deg < 15.0 and errors.translation < 0.3, errors
     assert len(result.agreeing_photos) >= 3
+    again = Initialiser(source, InitialiserSettings(cache_dir=tmp_path / "cache"))(meta, "dense")
+    np.testing.assert_array_equal(again.transform.matrix, result.transform.matrix)  # no random draw anywhere
 
 
 def test_a_reference_without_observed_points_is_refused_in_one_sentence(tmp_path):

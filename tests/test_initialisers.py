@@ -157,13 +157,16 @@ def ground_truth(meta_dir: Path) -> Sim3:
     return Sim3.from_matrix(json.loads((meta_dir / "gt_transform.json").read_text())["matrix"])
 
 
-@pytest.mark.parametrize("method", METHODS)
-def test_initialisers_recover_the_ground_truth_on_clean_renders(method, initialiser, scene):
+@pytest.mark.parametrize("method, within", [(m, (2.0, 0.05)) for m in METHODS if m != "dense"] + [("dense", (15.0, 0.3))])
+def test_initialisers_recover_the_ground_truth_on_clean_renders(method, within, initialiser, scene):
+    """SIFT starts (auto takes colmap's here) land within 2° / 0.05; the dense start is a coarse one, placed by
+    16-cell teacher maps among 12 reference views, for the registration to refine: within its goal of 15° / 0.3."""
     meta = load_meta_image(scene / "meta" / "front")
     result = initialiser(meta, method)
     assert result.succeeded, result.failure
+    assert result.method == ("colmap" if method == "auto" else method)
     errors = pose_errors([p.cam_from_world for p in meta.photos], result.transform, ground_truth(scene / "meta" / "front"))
-    assert errors.rotation_deg < 2.0 and errors.translation < 0.05, (errors.rotation_deg, errors.translation)
+    assert errors.rotation_deg < within[0] and errors.translation < within[1], (errors.rotation_deg, errors.translation)
     assert len(result.agreeing_photos) >= 3
     assert initialiser(meta, method).transform == pytest.approx(result.transform, abs=1e-9)  # deterministic
 

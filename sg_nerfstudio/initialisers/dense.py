@@ -73,6 +73,9 @@ class DenseInitSettings:
     """A photo agrees with a Sim(3) when one of its hypotheses is within this angle ..."""
     max_centre_error: float = 0.3
     """... and this distance, a share of the median distance of the reference cameras to their centroid."""
+    min_agreeing: int = 3
+    """Fewest photos that must agree on the Sim(3). Two agree by chance too often: five photos of flat grey and noise
+    gave a "start" that two of them agreed with (their placements score as high as real photos')."""
 
 
 @dataclass
@@ -132,8 +135,9 @@ class ReferenceMaps:
         raw = {view.name: [self._describe(images[view.name], view.camera, cells) for cells in settings.focal_cells] for view in self.views}
         sample = torch.cat([m.reshape(-1, m.shape[-1]) for maps in raw.values() for m in maps[len(maps) // 2:len(maps) // 2 + 1]])
         self.mean = sample.mean(0)
-        _, _, basis = torch.pca_lowrank(sample - self.mean, q=min(settings.dimensions, sample.shape[1]), center=False)
-        self.basis = basis
+        centred = (sample - self.mean).double()
+        _, vectors = torch.linalg.eigh(centred.T @ centred)  # exact and deterministic (pca_lowrank is randomised)
+        self.basis = vectors[:, -min(settings.dimensions, sample.shape[1]):].flip(1).float()
         self.stacks: list[list[tuple[list[int], torch.Tensor]]] = []
         """Per scale: (view indices, their projected maps [n, dimensions, rows, columns]) for each map size."""
         for scale in range(len(settings.focal_cells)):
@@ -278,7 +282,11 @@ def dense_start(meta: MetaImage, reference: ReferenceMaps) -> DenseStart:
     consensus = consensus_similarity(
         cam_from_meta, hypotheses, settings.max_rotation_deg, settings.max_centre_error * reference.spread, settings.proposing
     )
-    if consensus is None:
-        return DenseStart(None, [], found, failure=f"no two of its {len(meta.photos)} photos' placements among the reference images agree on a Sim(3)")
-    transform, agreeing = consensus
+    agreeing = consensus[1] if consensus is not None else []
+    if len(agreeing) < settings.min_agreeing:
+        return DenseStart(None, [], found, failure=(
+            f"the placements of its {len(meta.photos)} photos among the reference images give no Sim(3) that at least "
+            f"{settings.min_agreeing} of them agree with (best: {len(agreeing)})"
+        ))
+    transform = consensus[0]
     return DenseStart(transform, [meta.photos[i].name for i in agreeing], found)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+from PIL import Image as PILImage
 from rich.progress import Progress
 
 from sg_nerfstudio.bench.pairs import MIN_SIDE, read_pairs, read_pair
@@ -92,8 +93,11 @@ def gap_sentence(measures: dict) -> str:
 
 
 def _large_enough(folder: Path) -> bool:
-    """Whether every photo in the pairs folder has both sides >= MIN_SIDE (decoded sizes are checked by read_pairs)."""
-    import cv2
-
+    """Whether every photo in the pairs folder has both sides >= MIN_SIDE (from the file headers; read_pairs decodes)."""
     photos = sorted([*Path(folder).glob("photos/*"), *Path(folder).glob("*/photos/*")])
-    return bool(photos) and all(min(cv2.imread(str(path), cv2.IMREAD_UNCHANGED).shape[:2]) >= MIN_SIDE for path in photos)
+    return bool(photos) and all(min(_header_size(path)) >= MIN_SIDE for path in photos)
+
+
+def _header_size(path: Path) -> tuple[int, int]:
+    with PILImage.open(path) as image:
+        return image.size

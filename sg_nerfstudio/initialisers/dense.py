@@ -131,24 +131,29 @@ class ReferenceMaps:
             )
         centres = camera_centres(np.stack([view.cam_from_world for view in self.views]))
         self.spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1)))
-        images = {view.name: read_rgb(Path(images_path) / view.name) for view in self.views}
-        raw = {view.name: [self._describe(images[view.name], view.camera, cells) for cells in settings.focal_cells] for view in self.views}
-        sample = torch.cat([m.reshape(-1, m.shape[-1]) for maps in raw.values() for m in maps[len(maps) // 2:len(maps) // 2 + 1]])
+        middle = settings.focal_cells[len(settings.focal_cells) // 2]
+        sample = torch.cat([self._describe(Path(images_path) / view.name, view.camera, middle).reshape(-1, self.teacher.feature_dim) for view in self.views])
         self.mean = sample.mean(0)
         centred = (sample - self.mean).double()
         _, vectors = torch.linalg.eigh(centred.T @ centred)  # exact and deterministic (pca_lowrank is randomised)
         self.basis = vectors[:, -min(settings.dimensions, sample.shape[1]):].flip(1).float()
+        # Each image described and projected at once: its 324-d maps at every scale would take gigabytes for a large reference.
+        projected = [[self.project(m) for m in self._describe_all(Path(images_path) / view.name, view.camera)] for view in self.views]
         self.stacks: list[list[tuple[list[int], torch.Tensor]]] = []
         """Per scale: (view indices, their projected maps [n, dimensions, rows, columns]) for each map size."""
         for scale in range(len(settings.focal_cells)):
             by_shape: dict[tuple, list[int]] = {}
-            for index, view in enumerate(self.views):
-                by_shape.setdefault(tuple(raw[view.name][scale].shape), []).append(index)
-            self.stacks.append([
-                (indices, torch.stack([self.project(raw[self.views[i].name][scale]) for i in indices])) for indices in by_shape.values()
-            ])
+            for index in range(len(self.views)):
+                by_shape.setdefault(tuple(projected[index][scale].shape), []).append(index)
+            self.stacks.append([(indices, torch.stack([projected[i][scale] for i in indices])) for indices in by_shape.values()])
 
-    def _describe(self, image: torch.Tensor, camera: pycolmap.Camera, cells: float) -> torch.Tensor:
+    def _describe_all(self, path: Path, camera: pycolmap.Camera) -> list[torch.Tensor]:
+        image = read_rgb(path)
+        return [self._describe(image, camera, cells) for cells in self.settings.focal_cells]
+
+    def _describe(self, image: torch.Tensor | Path, camera: pycolmap.Camera, cells: float) -> torch.Tensor:
+        """[rows, columns, F] teacher map of the image (or image file) resized so that its focal length spans `cells`."""
+        image = read_rgb(image) if isinstance(image, Path) else image
         scale = cells / mean_focal(camera)  # cells per pixel
         grid = (max(2, round(image.shape[0] * scale)), max(2, round(image.shape[1] * scale)))
         return self.teacher.describe(image, grid=grid)

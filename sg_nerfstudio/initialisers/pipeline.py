@@ -259,11 +259,10 @@ class Initialiser:
         """colmap, generalized, dense: the first start found, with a note naming it and why the others gave none. A
         reference whose SIFT cloud cannot be built (too few points: a reference of renders) goes to dense directly."""
         reasons = []
-        self.check_reference()  # a missing or unreadable reference is the user's to fix, not a SIFT failure
         try:
             observations = self.observations(meta)
-        except InputError as error:  # the reference's SIFT cloud could not be built
-            reasons.append(f"SIFT: {str(error).rstrip('.')}")
+        except InputError as error:  # e.g. reference renders with too few SIFT matches among them for a cloud
+            reasons.append(f"SIFT: {str(error).rstrip('.')}")  # a reference that cannot be read fails in dense below
             observations = None
         if observations is not None:
             for method, run in (("colmap", self._colmap), ("generalized", self._generalized)):

@@ -123,7 +123,7 @@ class ReferenceMaps:
     def __init__(self, reconstruction: pycolmap.Reconstruction, images_path: Path, settings: DenseInitSettings):
         self.settings = settings
         self.teacher = build_teacher(TeacherConfig(name=settings.teacher, device="cpu"))
-        self.views = [view for view in map(lambda image: _view(reconstruction, image), reconstruction.images.values()) if view is not None]
+        self.views = [view for image in reconstruction.images.values() if (view := _view(reconstruction, image)) is not None]
         if len(self.views) < 2:
             raise DenseInitError(
                 f"The dense initialiser needs reference images that observe the reference's 3D points (for their depth); "

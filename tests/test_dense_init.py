@@ -111,3 +111,52 @@ def test_a_reference_without_observed_points_is_refused_in_one_sentence(tmp_path
         model.add_image_with_trivial_frame(image, look_at(np.array(eye, float), np.zeros(3)))
     with pytest.raises(DenseInitError, match=r"observe the reference's 3D points \(for their depth\); 0 of the model's 2 images do\.$"):
         ReferenceMaps(model, tmp_path, DenseInitSettings())
+
+
+class _DenseOnly:
+    """A stand-in Initialiser whose dense start is given (or fails, or raises); it counts its calls."""
+
+    def __init__(self, outcome):
+        self.outcome, self.calls, self.progress = outcome, 0, None
+
+    def __call__(self, meta, method):
+        assert method == "dense"
+        self.calls += 1
+        if isinstance(self.outcome, Exception):
+            raise self.outcome
+        return self.outcome
+
+
+def test_the_dense_start_goes_beside_the_given_one_only_where_asked_unanchored_and_different(tmp_path):
+    """ns-register-meta's choice of the starts beside the given one (`session.dense_start_beside`), with a stand-in
+    initialiser: one line for a start added and for a dense start that failed, nothing otherwise."""
+    from rich.console import Console
+
+    from sg_nerfstudio.errors import InputError
+    from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+    from sg_nerfstudio.initialisers.pipeline import InitResult
+    from sg_nerfstudio.registration.session import dense_start_beside
+    from sg_nerfstudio.registration.settings import load_preset
+
+    meta = type("Meta", (), {"name": "front"})()
+    given, other = Sim3.identity(), Sim3.from_parts(1.5, np.eye(3), np.array([1.0, 0.0, 0.0]))
+    found = lambda transform: InitResult("dense", "front", transform, None, [], ["a", "b", "c"], 0.0, note="dense: 3 of 5 photos agree")
+    failed = InitResult("dense", "front", None, "the placements of its 5 photos ... give no Sim(3)", [], [], 0.0)
+    fast = load_preset("fast-cpu")
+    assert fast.hypotheses.dense_start
+    anchors = [PhotoKeypoints("a", np.zeros((1, 2)), np.zeros((1, 3)))]
+    console = Console(record=True, width=200, file=open(tmp_path / "console.txt", "w"))
+    cases = [
+        (fast, [], _DenseOnly(found(other)), [("dense", other)], "front: the dense start (dense: 3 of 5 photos agree) is optimised beside"),
+        (fast.changed(hypotheses={"dense_start": False}), [], _DenseOnly(found(other)), [], None),
+        (fast, anchors, _DenseOnly(found(other)), [], None),  # keypoint anchors hold the pose
+        (fast, [], _DenseOnly(found(given)), [], None),  # --init dense: nothing beside it
+        (fast, [], _DenseOnly(failed), [], "front: no dense start beside the given one: the placements"),
+        (fast, [], _DenseOnly(InputError("The reference images cannot be read.")), [], "front: no dense start beside the given one: The reference images"),
+    ]
+    for settings, keypoints, initialiser, expected, line in cases:
+        assert dense_start_beside(initialiser, meta, given, settings, keypoints, console) == expected
+        said = " ".join(console.export_text(clear=True).split())
+        assert (line in said) if line else said == ""
+        assert initialiser.calls == (0 if (keypoints or not settings.hypotheses.dense_start) else 1)
+    assert dense_start_beside(None, meta, given, fast, [], console) == []

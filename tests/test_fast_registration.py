@@ -141,6 +141,26 @@ def test_each_kept_hypothesis_is_optimised_and_only_the_winners_steps_are_record
     assert pose_errors(meta.poses, winner, truth).rotation_deg < pose_errors(meta.poses, start, truth).rotation_deg
 
 
+def test_other_starts_are_always_optimised_and_the_judge_picks_among_every_end(front):
+    """A start far off and the dense initialiser's near the truth, with no rotations around the start (fast-cpu): both
+    run the stage and the near one wins; with the two swapped the given one wins; with rotations around the start of
+    which one is kept, the other start still runs beside it."""
+    meta, truth = front
+    far = perturbed(truth, meta.centres, np.random.default_rng(4), 25.0, 0.3, 0.2)
+    near = perturbed(truth, meta.centres, np.random.default_rng(5), 1.0, 0.01, 0.01)
+    losses = CentreLosses(meta, truth)
+    stage = Stage("main", losses, 0, 0.01, None)  # no steps: each end is its start, so the judge's choice is known
+    history = History([photo.name for photo in meta.photos])
+    winner, records, _ = hypotheses.best_hypothesis(stage, losses, meta, far, UNTRIMMED, history, 0, None, other_starts=[("dense", near)])
+    assert np.allclose(winner.matrix, near.matrix) and [(r["start"], r["won"]) for r in records] == [("given", False), ("dense", True)]
+    assert not records[0]["agrees_with_winner"] and records[1]["final_objective"] < records[0]["final_objective"]
+    winner, records, _ = hypotheses.best_hypothesis(stage, losses, meta, near, UNTRIMMED, history, 0, None, other_starts=[("dense", far)])
+    assert np.allclose(winner.matrix, near.matrix) and [(r["start"], r["won"]) for r in records] == [("given", True), ("dense", False)]
+    one_kept = UNTRIMMED.changed(hypotheses={"count": 4, "rotation_deg": 10.0, "kept": 1})
+    winner, records, _ = hypotheses.best_hypothesis(stage, losses, meta, far, one_kept, history, 0, None, other_starts=[("dense", near)])
+    assert len(records) == 2 and records[1]["start"] == "dense" and np.allclose(winner.matrix, near.matrix)
+
+
 def test_the_scale_search_scales_about_the_one_anchored_camera(front):
     """One photo's anchors leave the scale about its camera free: from 30% too large there, the search finds the
     factor the other photos' stand-in losses prefer, and the anchored camera does not move. Anchors of two photos apart,

@@ -791,6 +791,26 @@ def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, g
     assert [row["stage"] for row in result.history[:: len(meta.photos)]] == ["coarse-64"] * 40 + ["main"] * 60
 
 
+def test_a_dense_start_beside_a_far_one_ends_at_the_truth_unless_anchors_hold(reference, meta, ground_truth, monkeypatch):
+    """Targets rendered by the model at the truth, a given start 30° / 0.4 / 20% away and another start 2° away (as the
+    dense initialiser would give): both run the main stage, the other one's end wins and is accurate, the step count
+    includes both, and the records say which start won. With keypoint anchors the other start is not run."""
+    original = optimize.prepare_photos
+    monkeypatch.setattr(optimize, "prepare_photos", lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s))
+    settings = FAST.changed(optimiser={"steps": 40, "lr": 0.01, "lr_final": 0.0005}, objective={"kind": "teacher-on-render", "render_scale": 4.0})
+    far, near = perturbed_start(meta, ground_truth, 31, 30.0, 0.4, 0.2), perturbed_start(meta, ground_truth, 32, 2.0, 0.02, 0.02)
+    steps = []
+    result = register(reference, meta, far, settings, on_step=lambda step, _: steps.append(step), other_starts=[("dense", near)])
+    errors = pose_errors(meta.poses, result.transform, ground_truth)
+    assert errors.rotation_deg < 1.0 and errors.translation < 0.05, errors
+    assert len(steps) == optimize.total_steps(settings, other_starts=1) == 2 * 40 and result.steps == 40
+    assert [(h["start"], h["won"]) for h in result.hypotheses] == [("given", False), ("dense", True)]
+    anchored = settings.changed(optimiser={"update_centre": "look-at"}, anchors={"weight": 1.0})
+    keypoints = projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=3)
+    held = register(reference, meta, near, anchored, keypoints=keypoints, other_starts=[("dense", far)])
+    assert held.hypotheses == [] and optimize.total_steps(anchored, anchored=True, other_starts=1) == held.steps == 40
+
+
 def test_fail_on_and_merged_leave_out_a_failed_verdict(reference_config, tiny_scene, tmp_path, capsys, monkeypatch):
     """Two meta-images, the second judged failed (the rule is forced here; its evidence is tested above): the
     table and transform.json carry the verdicts, merged/ holds only the first and says why, --fail-on failed

@@ -196,9 +196,13 @@ class SceneRunner:
             settings = base.changed(seed=seed, **spec.overrides)
             keypoints = self.keypoints(subject, settings)
             record["anchored_photos"] = len(keypoints)
-            total = total_steps(settings, anchored=bool(keypoints))
+            others = self.dense_start_beside(meta, subject, start, settings, keypoints)
+            record["other_starts"] = [label for label, _ in others]
+            total = total_steps(settings, anchored=bool(keypoints), other_starts=len(others))
             try:
-                result = register(self.reference, subject, start, settings, on_step=lambda step, _: on_step(step, total), keypoints=keypoints)
+                result = register(
+                    self.reference, subject, start, settings, on_step=lambda step, _: on_step(step, total), keypoints=keypoints, other_starts=others,
+                )
             except (InputError, FloatingPointError) as error:
                 record["refine_failure"] = str(error)
             else:
@@ -207,6 +211,7 @@ class SceneRunner:
                 record["refine_time_s"] = result.wall_time_s
                 record["verdict"], record["verdict_reasons"] = result.verdict.label, result.verdict.reasons
                 record["verdict_evidence"] = result.verdict.as_record()["evidence"]
+                record["start_won"] = next((h["start"] for h in result.hypotheses if h["won"]), "given")
         write_json_atomically(record_path(self.output, self.scene.name, meta.name, spec.name), record)
         return record
 
@@ -224,6 +229,23 @@ class SceneRunner:
         if self.options.anchored_photos > 0:
             keypoints = sorted(keypoints, key=lambda photo: -len(photo.points2D))[: self.options.anchored_photos]
         return keypoints
+
+    def dense_start_beside(
+        self, meta: BenchmarkMeta, subject: MetaImage, start: Sim3, settings: RegistrationSettings, keypoints: list[PhotoKeypoints],
+    ) -> list[tuple[str, Sim3]]:
+        """[("dense", the dense initialiser's start)] for a run whose settings ask for it (`hypotheses.dense_start`) and
+        whose meta-image no keypoint anchors hold, as ns-register-meta does; the same for every run of a meta-image."""
+        if not settings.hypotheses.dense_start or (keypoints and settings.anchors.weight > 0):
+            return []
+        key = (meta.name, "dense")
+        if key not in self.initial:
+            try:
+                outcome = self.initialiser(subject, "dense")
+                self.initial[key] = (outcome.transform, outcome.failure)
+            except InputError as error:
+                self.initial[key] = (None, str(error))
+        dense = self.initial[key][0]
+        return [] if dense is None or np.allclose(dense.matrix, start.matrix) else [("dense", dense)]
 
     def start(self, meta: BenchmarkMeta, subject: MetaImage, spec: RunSpec, rng: np.random.Generator) -> tuple[Optional[Sim3], Optional[str]]:
         """The initial transform of a run, or (None, the initialiser's failure sentence)."""

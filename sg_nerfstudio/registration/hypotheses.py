@@ -1,11 +1,13 @@
-"""Several starts around one (`hypotheses` > 0, wide-cpu): rotations about axes spread over the sphere and scales on a
-grid, scored by the first stage's robust objective; the best few are optimised over that stage and the one whose end
-the main stage's objective scores lowest wins (`best_hypothesis`). Transforms are numpy Sim3s meta -> dataparser.
+"""Several starts for the first stage (`best_hypothesis`): rotations of the given start about axes spread over the
+sphere and scales on a grid (`hypotheses.count` > 0, wide-cpu), scored by the first stage's robust objective, of which
+the best few are optimised, and starts proposed by other means (the dense initialiser's: `hypotheses.dense_start`),
+which are always optimised. The end the main stage's objective scores lowest wins. Transforms are numpy Sim3s
+meta -> dataparser.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -24,31 +26,37 @@ if TYPE_CHECKING:  # the anchored start builds on the stages; they only take its
 
 def best_hypothesis(
     stage: Stage, judge: PhotoLosses, meta: MetaImage, start_ns: Sim3, settings: RegistrationSettings, history: History, first_step: int,
-    on_step: Optional[Callable[[int, Sim3], None]], anchor: Optional[Anchoring] = None,
+    on_step: Optional[Callable[[int, Sim3], None]], anchor: Optional[Anchoring] = None, other_starts: Sequence[tuple[str, Sim3]] = (),
 ) -> tuple[Sim3, list[dict], int]:
-    """Several starts around `start_ns`: the start and `settings.hypotheses.count` rotations of `hypotheses.rotation_deg` about
-    axes spread over the sphere (about the cameras' centroid), each also scaled by every `hypothesis_scales`
-    factor. The `hypotheses_kept` with the lowest robust objective are each optimised over the stage; the one whose end scores lowest under `judge` (the main
-    stage's finer objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
+    """Several starts for the first stage: `start_ns` and `settings.hypotheses.count` rotations of it by
+    `hypotheses.rotation_deg` about axes spread over the sphere (about the cameras' centroid), each also scaled by every
+    `hypotheses.scales` factor, of which the `hypotheses.kept` with the lowest robust objective are optimised over the
+    stage; and every (label, start) of `other_starts`, always optimised. The end that scores lowest under `judge` (the
+    main stage's objective, which tells apart ends the coarse one cannot) wins and its steps go to `history`.
 
     Scores are the robust objective plus, with an `anchor`, the keypoint term weighted as in `stages.optimise_stage`.
 
-    Returns (winner, one record per optimised hypothesis, the next step number)."""
+    Returns (winner, one record per optimised start, the next step number)."""
     rotated = [(None, start_ns)] + hypotheses_around(start_ns, meta, settings.hypotheses.count, settings.hypotheses.rotation_deg)
     candidates = [((axis, factor), scaled_about_centroid(transform, meta, factor)) for factor in (1.0, *settings.hypotheses.scales) for axis, transform in rotated]
     coarse_score, judge_score = (objective_with_anchors(losses, start_ns, settings, anchor) for losses in (stage.losses, judge))
     scores = [coarse_score(transform) for _, transform in candidates]
+    kept = [
+        ("given" if candidates[i][0] == (None, 1.0) else "around", candidates[i][0], candidates[i][1], scores[i])
+        for i in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses.kept)]
+    ]
+    kept += [(label, (None, 1.0), transform, coarse_score(transform)) for label, transform in other_starts]
     runs = []
-    for index in np.argsort(scores, kind="stable")[: max(1, settings.hypotheses.kept)]:
+    for label, origin, transform, start_score in kept:
         own = History(history.names)
-        final, _ = optimise_stage(stage, meta, candidates[index][1], settings, own, first_step, on_step, anchor=anchor)
-        runs.append((final, judge_score(final), own, candidates[index][0], scores[index]))
-    winner, _, winner_history, _, _ = min(runs, key=lambda run: run[1])
+        final, _ = optimise_stage(stage, meta, transform, settings, own, first_step, on_step, anchor=anchor)
+        runs.append((final, judge_score(final), own, label, origin, start_score))
+    winner, _, winner_history, _, _, _ = min(runs, key=lambda run: run[1])
     history.extend(winner_history)
     records = [
-        {"axis": axis, "scale": factor, "start_objective_coarse": start_score, "final_objective": final_score,
-         "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
-        for final, final_score, _, (axis, factor), start_score in runs
+        {"start": label, "axis": axis, "scale": factor, "start_objective_coarse": start_score, "final_objective": final_score,
+         "won": final is winner, "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
+        for final, final_score, _, label, (axis, factor), start_score in runs
     ]
     return winner, records, first_step + stage.steps
 

@@ -3,8 +3,9 @@
 Phases:
 1. `anchored_start.start_from_anchors`: with keypoint anchors, the render-free pre-alignment, the camera fit and the
    scale the anchors leave free; without them, the start as given.
-2. `run_stages`: the coarse-to-fine stages (several starts at the first with hypotheses: hypotheses.py), the main stage,
-   the last stage; each Adam on delta over its per-photo losses (stages.py).
+2. `run_stages`: the coarse-to-fine stages (several starts at the first with hypotheses or other starts, such as the
+   dense initialiser's: hypotheses.py), the main stage, the last stage; each Adam on delta over its per-photo losses
+   (stages.py).
 3. `assess`: the final evaluation and the verdict's evidence, probed around the result (verdict.py, other_minimum.py).
 
 Everything the caller passes in and gets back is in the reference *world* frame; the phases work in nerfstudio's
@@ -17,7 +18,7 @@ import math
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
-from typing import Callable, ContextManager, Optional
+from typing import Callable, ContextManager, Optional, Sequence
 
 import numpy as np
 import torch
@@ -98,6 +99,7 @@ def register(
     on_step: Optional[Callable[[int, Sim3], None]] = None,
     objective: Optional[Objective] = None,
     keypoints: Optional[list[PhotoKeypoints]] = None,
+    other_starts: Sequence[tuple[str, Sim3]] = (),
 ) -> RegistrationResult:
     """Estimate the Sim(3) meta -> reference world starting from `initial_world` (the three phases of the module docstring).
 
@@ -111,7 +113,10 @@ def register(
     every stage adds their reprojection term (registration/anchored_start), and with `settings.camera_fit.focal` / `settings.camera_fit.photo_poses` the photos' focal
     lengths / poses fitted to them before the first render are used by every stage (`RegistrationResult.focal_scales`,
     `pose_corrections`); with moved poses the returned transform is the final one composed with the Sim(3) that maps
-    the given cameras onto the moved ones (`geometry.alignment.align_cameras`).
+    the given cameras onto the moved ones (`geometry.alignment.align_cameras`). `other_starts`: (label, meta -> world)
+    starts optimised over the first stage beside `initial_world` where no keypoint anchors hold the meta-image (e.g.
+    ("dense", the dense initialiser's start): `hypotheses.best_hypothesis`); the end the main stage's objective scores
+    lowest wins and `RegistrationResult.hypotheses` says which.
     """
     started = time.perf_counter()
     check_ranges(settings)
@@ -134,7 +139,8 @@ def register(
     history = History([p.name for p in photos])
     report = (lambda step, estimate: on_step(step, ns_to_world @ estimate)) if on_step is not None else None
     stages = coarse_stages(reference, meta, settings, near_plane) + [main] + refine_stages(reference, meta, settings, near_plane, bool(start.anchor), main)
-    current, hypotheses, step = run_stages(stages, main, meta, current, initial_ns, initial_losses, settings, history, report, start.anchor)
+    others = [] if uses_anchors(settings, bool(start.anchor)) else [(label, reference.world_to_dataparser @ t) for label, t in other_starts]
+    current, hypotheses, step = run_stages(stages, main, meta, current, initial_ns, initial_losses, settings, history, report, start.anchor, others)
 
     final_losses, trimmed, evidence, verdict_s = assess(main, meta, current, initial_losses, settings, start, scale_search)
     evidence.hypothesis_margin = hypothesis_margin(hypotheses)
@@ -169,15 +175,16 @@ def register(
 
 def run_stages(
     stages: list[Stage], main: Stage, meta: MetaImage, start_ns: Sim3, initial_ns: Sim3, initial_losses: Array, settings: RegistrationSettings,
-    history: History, on_step: Optional[Callable[[int, Sim3], None]], anchor: Anchoring,
+    history: History, on_step: Optional[Callable[[int, Sim3], None]], anchor: Anchoring, other_starts: Sequence[tuple[str, Sim3]] = (),
 ) -> tuple[Sim3, list[dict], int]:
     """Phase 2 of `register`: the stages in order from `start_ns` (meta -> dataparser), the first from several starts with
-    `settings.hypotheses.count`; (the result, the hypotheses' records, the number of steps). `initial_losses` [P]: the main
-    stage's losses at `initial_ns`, which seed its robust rule when it runs first from there."""
+    `settings.hypotheses.count` or `other_starts` ((label, meta -> dataparser)); (the result, the starts' records, the
+    number of steps). `initial_losses` [P]: the main stage's losses at `initial_ns`, which seed its robust rule when it
+    runs first from there."""
     current, step, hypotheses = start_ns, 0, []
     for index, stage in enumerate(stages):
-        if index == 0 and settings.hypotheses.count > 0:
-            current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, on_step, anchor)
+        if index == 0 and (settings.hypotheses.count > 0 or other_starts):
+            current, hypotheses, step = best_hypothesis(stage, main.losses, meta, current, settings, history, step, on_step, anchor, other_starts)
         else:
             seed = initial_losses if stage is main and index == 0 and current is initial_ns else None  # the start's losses, if still the start
             current, step = optimise_stage(stage, meta, current, settings, history, step, on_step, seed, anchor)
@@ -300,11 +307,13 @@ def main_schedule(settings: RegistrationSettings, prealigned: bool) -> tuple[int
     return steps, settings.anchors.main_lr if settings.anchors.main_lr is not None else settings.optimiser.lr
 
 
-def total_steps(settings: RegistrationSettings, anchored: bool = False) -> int:
+def total_steps(settings: RegistrationSettings, anchored: bool = False, other_starts: int = 0) -> int:
     """Steps of all stages (what `on_step` counts up to) for a meta-image with (`anchored`) or without keypoint
-    anchors: each optimised hypothesis runs the first stage."""
+    anchors and with `other_starts` starts beside the given one (ignored when anchored): each optimised start runs the
+    first stage."""
     main = main_schedule(settings, prealigns(settings, anchored))[0]
     first = settings.coarse_to_fine.steps if settings.coarse_to_fine.factors else main
     runs = min(settings.hypotheses.count + 1, max(1, settings.hypotheses.kept)) if settings.hypotheses.count else 1
+    runs += 0 if uses_anchors(settings, anchored) else other_starts
     refine = settings.last_stage.steps if refines(settings, anchored) else 0
     return main + len(settings.coarse_to_fine.factors) * settings.coarse_to_fine.steps + (runs - 1) * first + refine

@@ -5,7 +5,8 @@
 1. check every input before heavy work (the trained config, each meta-image, --init / --gt files, result
    directories), one sentence per problem;
 2. for each meta-image: its initial transform (identity, a JSON file, or an initialiser: `colmap`,
-   `generalized`), then `register()` and the outputs (`outputs.write_outputs`);
+   `generalized`, `dense`, `auto`), the keypoint anchors or, without them, the dense start to optimise beside it where
+   the settings ask (`hypotheses.dense_start`), then `register()` and the outputs (`outputs.write_outputs`);
 3. print the summary table (with each result's verdict, `verdict.py`); with several meta-images, assemble
    `<output-dir>/merged/` (`merge.py`) from those whose verdict is not `failed`. `fails()` tells
    ns-register-meta which meta-images trip `--fail-on`.
@@ -18,7 +19,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal, Optional
+from typing import Annotated, Literal, Optional, Sequence
+
+import numpy as np
 
 import pycolmap
 import tyro
@@ -202,7 +205,7 @@ def registered_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
     if any(value in METHODS for value in init_values):
         initialiser = build_initialiser(job)
         initialiser.check_reference()
-    elif job.settings.anchors.weight > 0:
+    elif job.settings.anchors.weight > 0 or job.settings.hypotheses.dense_start:
         initialiser = keypoint_initialiser(job, console)
 
     reference = load_reference(job.load_config, device=resolve_device(job.device))
@@ -214,7 +217,8 @@ def registered_job(job: RegistrationJob, console: Console) -> list[MetaOutcome]:
                 outcomes.append(MetaOutcome(meta))
                 continue
         keypoints = anchors_for(initialiser, meta, job.settings, console)
-        outcomes.append(register_one(job, reference, meta, initial, gt, console, keypoints))
+        others = dense_start_beside(initialiser, meta, initial, job.settings, keypoints, console)
+        outcomes.append(register_one(job, reference, meta, initial, gt, console, keypoints, others))
     print_summary(outcomes, console)
     if len(metas) > 1:
         write_merge(job.output_dir / MERGED, outcomes, reference_part, job.overwrite, console)
@@ -229,14 +233,15 @@ def build_initialiser(job: RegistrationJob) -> Initialiser:
 
 
 def keypoint_initialiser(job: RegistrationJob, console: Console) -> Optional[Initialiser]:
-    """For keypoint anchors without an initialiser start: the initialiser when the reference's COLMAP model and
-    images can be used, else None after one line saying that the dense objective runs alone."""
+    """For keypoint anchors or the dense start beside the given one, without an initialiser start: the initialiser
+    when the reference's COLMAP model and images can be used, else None after one line saying that the given start
+    and the dense objective run alone."""
     try:
         initialiser = build_initialiser(job)
         initialiser.check_reference()
         return initialiser
     except InputError as error:
-        console.print(f"[yellow]Keypoint anchors are off (the dense objective alone): {error}[/yellow]", soft_wrap=True)
+        console.print(f"[yellow]Keypoint anchors and the dense start are off (the given start and the dense objective alone): {error}[/yellow]", soft_wrap=True)
         return None
 
 
@@ -257,16 +262,47 @@ def anchors_for(initialiser: Optional[Initialiser], meta: MetaImage, settings: R
     return keypoints
 
 
+def dense_start_beside(
+    initialiser: Optional[Initialiser], meta: MetaImage, initial: Sim3, settings: RegistrationSettings, keypoints: list[PhotoKeypoints], console: Console,
+) -> list[tuple[str, Sim3]]:
+    """[("dense", its start)] where `settings.hypotheses.dense_start` asks for it, no keypoint anchors hold the meta-image
+    and the dense initialiser finds a start other than `initial`; else empty, with one line saying why where it failed."""
+    if not settings.hypotheses.dense_start or initialiser is None or (keypoints and settings.anchors.weight > 0):
+        return []
+    try:
+        with rich_progress(console) as progress:
+            initialiser.progress = progress
+            outcome = initialiser(meta, "dense")
+    except InputError as error:
+        console.print(f"[yellow]{meta.name}: no dense start beside the given one: {error}[/yellow]", soft_wrap=True)
+        return []
+    if outcome.failure:
+        console.print(f"[yellow]{meta.name}: no dense start beside the given one: {outcome.failure}[/yellow]", soft_wrap=True)
+        return []
+    if np.allclose(outcome.transform.matrix, initial.matrix):  # --init dense: the given start is the dense one
+        return []
+    console.print(f"{meta.name}: the dense start ({outcome.note}) is optimised beside the given one; the lower end wins.", soft_wrap=True)
+    return [("dense", outcome.transform)]
+
+
 def register_one(
-    job: RegistrationJob, reference, meta: MetaImage, initial: Sim3, gt: Optional[Sim3], console: Console, keypoints: Optional[list[PhotoKeypoints]] = None,
+    job: RegistrationJob, reference, meta: MetaImage, initial: Sim3, gt: Optional[Sim3], console: Console,
+    keypoints: Optional[list[PhotoKeypoints]] = None, other_starts: Sequence[tuple[str, Sim3]] = (),
 ) -> MetaOutcome:
     """Register one meta-image with a progress bar and write its result directory."""
     objective = build_objective(reference, job.settings)
     photos = prepare_photos(reference, meta, job.settings, objective)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console, transient=True) as progress:
-        task = progress.add_task(f"Registering {meta.name}", total=total_steps(job.settings, anchored=bool(keypoints)))
-        result = register(reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective, keypoints=keypoints)
+        total = total_steps(job.settings, anchored=bool(keypoints), other_starts=len(other_starts))
+        task = progress.add_task(f"Registering {meta.name}", total=total)
+        result = register(
+            reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective,
+            keypoints=keypoints, other_starts=other_starts,
+        )
+    won = next((h["start"] for h in result.hypotheses if h["won"]), "given")
+    if won != "given":
+        console.print(f"{meta.name}: the {won} start ended lower than the given one and was kept (transform.json: hypotheses).")
     rendered = result.rendered_model
     if rendered.get("voxel_pixels", 0.0) > job.settings.level_of_detail.voxel_pixels:
         console.print(

@@ -107,7 +107,7 @@ class CoarseToFineSettings:
 
 @dataclass
 class HypothesisSettings:
-    """Several starts scored at the coarsest stage (only with coarse-to-fine factors)."""
+    """Several starts for the first stage (registration/hypotheses.py); the end the main stage's objective scores lowest wins."""
 
     count: int = 0
     """Rotations of the start about this many axes (a Fibonacci sphere), besides the start itself; 0: the start only."""
@@ -117,6 +117,10 @@ class HypothesisSettings:
     """Each candidate also scaled by each factor about the cameras' centroid (e.g. 0.8 1.25)."""
     kept: int = 3
     """Best-scoring candidates optimised over the coarsest stage; the lowest end wins."""
+    dense_start: bool = False
+    """Where no keypoint anchors hold the meta-image: also optimise from the dense initialiser's start
+    (initialisers/dense.py; it needs the reference's COLMAP model and images), so that a start in another basin, which
+    SIFT cannot correct across a domain gap, still ends at the minimum the objective prefers (docs/gap-scenes.md)."""
 
 
 @dataclass
@@ -222,7 +226,7 @@ LEGACY_KEYS = {
     "retrim_every": "robust.retrim_every",
     "pyramid": "coarse_to_fine.factors", "pyramid_steps": "coarse_to_fine.steps",
     "hypotheses": "hypotheses.count", "hypothesis_deg": "hypotheses.rotation_deg", "hypothesis_scales": "hypotheses.scales",
-    "hypotheses_kept": "hypotheses.kept",
+    "hypotheses_kept": "hypotheses.kept", "dense_start": "hypotheses.dense_start",
     "level_of_detail": "level_of_detail.voxel_pixels", "render_budget": "level_of_detail.render_budget",
     "keypoint_weight": "anchors.weight", "keypoint_prealign_steps": "anchors.prealign_steps", "prealigned_steps": "anchors.main_steps",
     "prealigned_lr": "anchors.main_lr",

@@ -162,11 +162,14 @@ def test_noise_table_names_the_preset_each_run_was_made_with():
         return {"family": "noise", "label": "30", "mode": "", "preset": preset, "refine_time_s": 10.0,
                 "after": {"dR": dR, "dT": 0.01, "accurate": dR < 5, "outlier": dR > 10}}
 
+    beside = lambda won: {**record("fast-cpu", 20.0 if won == "given" else 1.0), "other_starts": ["dense"], "start_won": won}
     rows = noise_table([record("wide-cpu", 1.0), record("wide-cpu", 3.0), record("fast-cpu", 20.0), {**record("", 2.0), "preset": None}], "fast-cpu")
     assert rows[2:] == [
-        "| 30, 0.50, 30% | fast-cpu | 2 | 50 | 11.00 / 11.00 | 0.010 / 0.010 | 10 |",
-        "| 30, 0.50, 30% | wide-cpu | 2 | 100 | 2.00 / 2.00 | 0.010 / 0.010 | 10 |",
+        "| 30, 0.50, 30% | fast-cpu | 2 | 50 | 50 | 11.00 / 11.00 | 0.010 / 0.010 | 2.00 / 0.010 | - | 10 |",
+        "| 30, 0.50, 30% | wide-cpu | 2 | 100 | 0 | 2.00 / 2.00 | 0.010 / 0.010 | 2.00 / 0.010 | - | 10 |",
     ]
+    rows = noise_table([beside("dense"), beside("dense"), beside("given")], "fast-cpu")
+    assert rows[2:] == ["| 30, 0.50, 30% | fast-cpu | 3 | 67 | 33 | 7.33 / 1.00 | 0.010 / 0.010 | 1.00 / 0.010 | 2 of 3 | 10 |"]
 
 
 def test_start_precision_table_counts_refinements_further_than_their_start_beyond_the_truths_residual(tmp_path):

@@ -192,7 +192,8 @@ def ablation_table(records: list[dict]) -> list[str]:
 
 
 def noise_table(records: list[dict], preset: str) -> list[str]:
-    """Per noise level and preset: MTA, mean and median ΔR / ΔT after, mean wall time (the noise runs' starts).
+    """Per noise level and preset: MTA, O%, mean and median ΔR / ΔT after, the accurate runs' mean ΔR / ΔT, how often
+    the dense start beside the given one won (`hypotheses.dense_start`), mean wall time (the noise runs' starts).
 
     A run's preset is the one its record names (runs an earlier invocation made with another `--config` keep
     their name); records written before presets were recorded count as `preset`, this invocation's."""
@@ -202,15 +203,25 @@ def noise_table(records: list[dict], preset: str) -> list[str]:
             groups[(float(r["label"]), r.get("mode") or r.get("preset") or preset)].append(r)
     if not groups:
         return []
-    lines = ["| start (°, ΔT, scale) | preset | runs | MTA (%) | ΔR (°) mean / median | ΔT mean / median | mean s |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| start (°, ΔT, scale) | preset | runs | MTA (%) | O (%) | ΔR (°) mean / median | ΔT mean / median | accurate: ΔR / ΔT mean | dense start won | mean s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for (level, mode), runs in sorted(groups.items(), key=lambda item: (item[0][0], item[0][1] != preset, item[0][1])):
         done = [r["after"] for r in runs if r["after"] is not None]
+        accurate = [e for e in done if e["dR"] < 5 and e["dT"] < 0.2]
         m = row_metrics([r["after"] for r in runs])
         digits = {"dR": 2, "dT": 3}
-        both = lambda key: f"{statistics.mean(e[key] for e in done):.{digits[key]}f} / {statistics.median(e[key] for e in done):.{digits[key]}f}" if done else "-"
-        mta = f"{m['MTA']:.0f}" if m["MTA"] is not None else "-"
+        mean = lambda errors, key: f"{statistics.mean(e[key] for e in errors):.{digits[key]}f}"
+        both = lambda key: f"{mean(done, key)} / {statistics.median(e[key] for e in done):.{digits[key]}f}" if done else "-"
+        percent = lambda key: f"{m[key]:.0f}" if m[key] is not None else "-"
+        beside = [r for r in runs if r.get("other_starts") and r["after"] is not None]
+        won = f"{sum(r.get('start_won') == 'dense' for r in beside)} of {len(beside)}" if beside else "-"
         seconds = statistics.mean(r["refine_time_s"] for r in runs)
-        lines.append(f"| {level:g}, {level / 60:.2f}, {level:g}% | {mode} | {len(runs)} | {mta} | {both('dR')} | {both('dT')} | {seconds:.0f} |")
+        lines.append(
+            f"| {level:g}, {level / 60:.2f}, {level:g}% | {mode} | {len(runs)} | {percent('MTA')} | {percent('O')} | {both('dR')} | {both('dT')} | "
+            f"{mean(accurate, 'dR') + ' / ' + mean(accurate, 'dT') if accurate else '-'} | {won} | {seconds:.0f} |"
+        )
     return lines
 
 

@@ -162,6 +162,8 @@ class SceneRunner:
         self.reference_unusable: Optional[str] = None  # why the initialisers cannot use this reference, once known
         self.initial: dict[tuple[str, str], tuple[Optional[Sim3], Optional[str]]] = {}
         """(meta-image, initialiser) -> its start, so the `--compare-config` runs start where the main one did."""
+        self.notes: dict[tuple[str, str], Optional[str]] = {}
+        """(meta-image, initialiser) -> its note (for `auto`: which start it took)."""
 
     def pending(self, meta: BenchmarkMeta, n_photos: int) -> list[RunSpec]:
         return [run for run in planned_runs(self.options, n_photos) if not record_path(self.output, self.scene.name, meta.name, run.name).is_file()]
@@ -183,6 +185,7 @@ class SceneRunner:
         record = {
             "scene": self.scene.name, "meta": meta.name, "photos": len(subject.photos), "run": spec.name, "family": spec.family,
             "start": spec.start, "label": spec.label, "init_failure": failure, "init_time_s": time.perf_counter() - started,
+            "init_note": self.notes.get((meta.name, spec.start)),
             "before": None, "after": None, "refine_failure": None, "refine_time_s": 0.0, "mode": spec.mode,
             "preset": spec.mode or self.options.preset, "verdict": None,
             "truth_residual": meta.truth_residual if not spec.subset_size else None,
@@ -253,21 +256,21 @@ class SceneRunner:
         if spec.start in METHODS:
             key = (meta.name, spec.start)
             if key not in self.initial:
-                self.initial[key] = self.initialised(subject, spec.start)
+                self.initial[key], self.notes[key] = self.initialised(subject, spec.start)
             return self.initial[key]
         degrees = spec.rotation_noise_deg
         noise = (degrees, degrees * NOISE_PER_DEGREE[0], degrees * NOISE_PER_DEGREE[1]) if spec.start == "noise" else PERTURBED_START
         return perturbed(truth, subject.centres, rng, *noise), None
 
-    def initialised(self, subject: MetaImage, method: str) -> tuple[Optional[Sim3], Optional[str]]:
-        """The initialiser's transform, or (None, its failure sentence)."""
+    def initialised(self, subject: MetaImage, method: str) -> tuple[tuple[Optional[Sim3], Optional[str]], Optional[str]]:
+        """((the initialiser's transform or None, its failure sentence), its note)."""
         if self.reference_unusable is None:
             try:
                 outcome = self.initialiser(subject, method)
-                return outcome.transform, outcome.failure
+                return (outcome.transform, outcome.failure), outcome.note
             except InputError as error:  # e.g. the reference images share too few SIFT matches
                 self.reference_unusable = str(error)
-        return None, self.reference_unusable
+        return (None, self.reference_unusable), None
 
 
 def summary(errors) -> dict:

@@ -57,6 +57,20 @@ def test_benchmark_suite_definitions_follow_the_issue():
     assert len({c.occluder_rate for c in scenes.values()}) > 3 and len({c.appearance_strength for c in scenes.values()}) > 3
 
 
+def test_another_draw_of_a_suite_moves_every_scene_s_seed_and_says_so(suite, tmp_path):
+    """--draw N: each scene generated from its seed + N (other cameras, the same landmark shapes), recorded in
+    benchmark.json; a negative draw is refused in one sentence with nothing written."""
+    again = tmp_path / "draw-1"
+    assert make_scene_main(["--preset", "tiny-benchmark", "--draw", "1", "--output", str(again)]) == 0
+    assert json.loads((again / "benchmark.json").read_text())["draw"] == 1 and json.loads((suite / "benchmark.json").read_text())["draw"] == 0
+    for name, config in SUITES["tiny-benchmark"].items():
+        seeds = [json.loads((root / name / "scene.json").read_text())["config"]["seed"] for root in (suite, again)]
+        assert seeds == [config.seed, config.seed + 1]
+        assert (suite / name / "meta" / "front" / "sparse" / "0" / "images.bin").read_bytes() != (again / name / "meta" / "front" / "sparse" / "0" / "images.bin").read_bytes()
+    assert make_scene_main(["--preset", "tiny-benchmark", "--draw", "-1", "--output", str(tmp_path / "bad")]) != 0
+    assert not (tmp_path / "bad").exists()
+
+
 def test_suite_layout_is_read_back(suite):
     scenes = read_benchmark(suite)
     assert [s.name for s in scenes] == list(SUITES["tiny-benchmark"])

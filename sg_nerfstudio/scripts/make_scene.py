@@ -5,6 +5,7 @@
     sg-make-scene --preset benchmark --output bench            # a suite: bench/<scene>/ for each scene
     sg-make-scene --preset gap --output scenes/gap             # the paper's setting: a Google-Earth-like reference
     sg-make-scene --preset gap-benchmark --output gap-bench    # the benchmark's landmarks in that setting
+    sg-make-scene --preset gap-benchmark --draw 1 --output gap-bench-1   # another draw of them
     sg-make-scene --from-photos photos/ --cameras cameras/ --output real/fountain   # from real photos
 
 `--preset` picks the starting settings (see `sg_nerfstudio.synthetic.PRESETS`); every other flag
@@ -13,7 +14,7 @@ Every scene holds its photo/render pairs at the true pose (`<scene>/pairs/`, `sg
 builder prints their SIFT share and teacher identifiability beside the paper's own pairs' (bench/gap.py).
 A suite preset (`sg_nerfstudio.synthetic.generator.SUITES`: `benchmark`, `gap-benchmark`, `tiny-benchmark`) writes several
 scenes into `<output>/<scene name>/` plus `<output>/benchmark.json` naming them, the layout `sg-bench`
-reads; it takes only --output and --overwrite.
+reads; it takes only --output, --overwrite and --draw N (another draw of the same landmarks: every scene's seed + N).
 `--from-photos PHOTOS` builds a scene from real photographs instead (sg_nerfstudio/photos/scene.py: the
 reference from part of the photos with a pseudo-synthetic look, meta-images from the others, each with its
 own SfM, ground truth from --cameras (Strecha `.camera` files or a COLMAP model) or SfM on all photos).
@@ -24,7 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Optional
@@ -41,7 +42,7 @@ from sg_nerfstudio.initialisers import set_colmap_verbosity
 from sg_nerfstudio.photos.scene import RealSceneSettings, build_real_scene
 from sg_nerfstudio.errors import cli_main
 from sg_nerfstudio.synthetic import PRESETS, SceneConfig, generate_scene
-from sg_nerfstudio.synthetic.generator import SUITES
+from sg_nerfstudio.synthetic.generator import SUITES, SceneGenerationError
 
 
 @dataclass
@@ -61,6 +62,9 @@ class SuiteArgs:
 
     output: Path
     """Directory to create (holding <scene>/ per scene and benchmark.json); refused if it exists unless --overwrite."""
+    draw: int = 0
+    """Another draw of the suite: added to every scene's seed, so the photos' and reference cameras, occluders, lighting
+    and the landmarks' Gaussians change while each landmark's shape and palette stay (0: the suite as published)."""
     overwrite: bool = False
 
 
@@ -111,9 +115,12 @@ def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
 def make_suite(name: str, args: SuiteArgs, console: Console) -> int:
     """Write every scene of the suite `name` into args.output, atomically as a whole."""
     check_new_output_directory(args.output, args.overwrite)
-    manifest, gaps = {"suite": name, "scenes": []}, {}
+    if args.draw < 0:
+        raise SceneGenerationError(f"--draw must be 0 or more, got {args.draw}.")
+    manifest, gaps = {"suite": name, "draw": args.draw, "scenes": []}, {}
     with atomic_directory(args.output, overwrite=args.overwrite) as staging, scene_progress(console) as progress:
         for scene_name, config in SUITES[name].items():
+            config = replace(config, seed=config.seed + args.draw)
             scene = generate_scene(config, staging / scene_name, progress=progress, measure_pairs=partial(measure_gap, progress=progress))
             manifest["scenes"].append({"name": scene_name, "meta_images": [m["name"] for m in scene["meta_images"]]})
             console.print(f"{scene_name}: " + ", ".join(f"{m['name']} ({m['n_photos']} photos)" for m in scene["meta_images"])

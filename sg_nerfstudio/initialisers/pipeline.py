@@ -46,7 +46,7 @@ from sg_nerfstudio.initialisers.estimate import (
     similarity_from_one_photo,
     similarity_from_poses,
 )
-from sg_nerfstudio.initialisers.dense import DenseInitSettings, ReferenceMaps, dense_start
+from sg_nerfstudio.initialisers.dense import DenseInitSettings, DenseStart, ReferenceMaps, dense_start, mean_focal
 from sg_nerfstudio.initialisers.features import ImageFeatures, MatchSettings, SiftExtractor, SiftSettings, VerifiedMatcher, default_cache_dir
 from sg_nerfstudio.initialisers.reference_cloud import (
     PairingSettings,
@@ -218,6 +218,7 @@ class Initialiser:
         self._observations: dict[tuple, list[Observations]] = {}
         self._generalized_poses: dict[tuple, Optional[GeneralizedPose]] = {}
         self._reference_maps: Optional[ReferenceMaps] = None
+        self._dense_starts: dict[tuple, DenseStart] = {}
 
     @property
     def cloud(self) -> ReferenceCloud:
@@ -287,9 +288,12 @@ class Initialiser:
 
     def _dense(self, meta: MetaImage) -> InitResult:
         reference = self.reference_maps()
-        advance = self.progress(f"Placing photos of {meta.name} among the reference images", 1)
-        start = dense_start(meta, reference)
-        advance()
+        key = tuple((str(photo.path), photo.cam_from_world.tobytes(), mean_focal(photo.camera)) for photo in meta.photos)
+        if key not in self._dense_starts:  # once per set of photos: `auto` and the registration's dense start beside another share it
+            advance = self.progress(f"Placing photos of {meta.name} among the reference images", 1)
+            self._dense_starts[key] = dense_start(meta, reference)
+            advance()
+        start = self._dense_starts[key]
         photos = [PhotoPose(photo.name, None, 0, 0) for photo in meta.photos]
         if start.transform is None:
             return self._failure("dense", meta, photos, start.failure)

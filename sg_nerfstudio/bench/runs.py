@@ -37,6 +37,7 @@ from sg_nerfstudio.geometry.meta_image import MetaImage
 from sg_nerfstudio.geometry.sim3 import Sim3, perturbed
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, ReferenceSource
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
+from sg_nerfstudio.registration.hypotheses import runs_dense_start
 from sg_nerfstudio.registration.metrics import pose_errors
 from sg_nerfstudio.registration.optimize import register, total_steps
 from sg_nerfstudio.registration.reference import ReferenceModel, load_reference
@@ -238,7 +239,7 @@ class SceneRunner:
     ) -> list[tuple[str, Sim3]]:
         """[("dense", the dense initialiser's start)] for a run whose settings ask for it (`hypotheses.dense_start`) and
         whose meta-image no keypoint anchors hold, as ns-register-meta does; the same for every run of a meta-image."""
-        if not settings.hypotheses.dense_start or (keypoints and settings.anchors.weight > 0):
+        if not runs_dense_start(settings, bool(keypoints)):
             return []
         key = (meta.name, "dense")
         if key not in self.initial:

@@ -18,7 +18,7 @@ from sg_nerfstudio.geometry.sim3 import Sim3, rotation_angle_deg
 from sg_nerfstudio.registration.objectives import PhotoLosses
 from sg_nerfstudio.registration.schedules import History
 from sg_nerfstudio.registration.settings import RegistrationSettings
-from sg_nerfstudio.registration.stages import Stage, objective_with_anchors, optimise_stage
+from sg_nerfstudio.registration.stages import Stage, objective_with_anchors, optimise_stage, uses_anchors
 
 if TYPE_CHECKING:  # the anchored start builds on the stages; they only take its anchors
     from sg_nerfstudio.registration.anchored_start import Anchoring
@@ -59,6 +59,12 @@ def best_hypothesis(
         for final, final_score, _, label, (axis, factor), start_score in runs
     ]
     return winner, records, first_step + stage.steps
+
+
+def runs_dense_start(settings: RegistrationSettings, anchored: bool) -> bool:
+    """Whether the dense initialiser's start runs beside the given one: the settings ask for it
+    (`hypotheses.dense_start`) and no keypoint anchors hold the meta-image (they fix the pose whatever the start)."""
+    return settings.hypotheses.dense_start and not uses_anchors(settings, anchored)
 
 
 HYPOTHESIS_AGREEMENT_DEG = 2.0

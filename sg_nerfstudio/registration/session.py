@@ -38,6 +38,7 @@ from sg_nerfstudio.geometry.sim3 import Sim3
 from sg_nerfstudio.initialisers import METHODS, Initialiser, InitialiserSettings, resolve_reference_source, rich_progress, set_colmap_verbosity
 from sg_nerfstudio.initialisers.estimate import PhotoKeypoints
 from sg_nerfstudio.initialisers.features import default_cache_dir as default_initialiser_cache
+from sg_nerfstudio.registration.hypotheses import runs_dense_start
 from sg_nerfstudio.registration.merge import MergePart, write_merged
 from sg_nerfstudio.registration.metrics import PoseErrors, pose_errors
 from sg_nerfstudio.registration.objectives import build_objective, check_objective_settings, prepare_photos
@@ -267,7 +268,7 @@ def dense_start_beside(
 ) -> list[tuple[str, Sim3]]:
     """[("dense", its start)] where `settings.hypotheses.dense_start` asks for it, no keypoint anchors hold the meta-image
     and the dense initialiser finds a start other than `initial`; else empty, with one line saying why where it failed."""
-    if not settings.hypotheses.dense_start or initialiser is None or (keypoints and settings.anchors.weight > 0):
+    if initialiser is None or not runs_dense_start(settings, bool(keypoints)):
         return []
     try:
         with rich_progress(console) as progress:

@@ -793,9 +793,8 @@ def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, g
 
 def test_a_dense_start_beside_a_far_one_ends_at_the_truth_unless_anchors_hold(reference, meta, ground_truth, monkeypatch):
     """Targets rendered by the model at the truth, a given start 30° / 0.4 / 20% away and another start 2° away (as the
-    dense initialiser would give): both run the main stage, the other one's end wins, is accurate and is where a
-    registration from it alone ends; the step count includes both, and the records say which start won. With keypoint
-    anchors the other start is not run."""
+    dense initialiser would give): both run the main stage, the other one's end wins and is accurate, the step count
+    includes both, and the records say which start won. With keypoint anchors the other start is not run."""
     original = optimize.prepare_photos
     monkeypatch.setattr(optimize, "prepare_photos", lambda ref, m, s, objective=None: rendered_targets(ref, m, original(ref, m, s, objective), ground_truth, s))
     settings = FAST.changed(optimiser={"steps": 40, "lr": 0.01, "lr_final": 0.0005}, objective={"kind": "teacher-on-render", "render_scale": 4.0})
@@ -806,8 +805,6 @@ def test_a_dense_start_beside_a_far_one_ends_at_the_truth_unless_anchors_hold(re
     assert errors.rotation_deg < 1.0 and errors.translation < 0.05, errors
     assert len(steps) == optimize.total_steps(settings, other_starts=1) == 2 * 40 and result.steps == 40
     assert [(h["start"], h["won"]) for h in result.hypotheses] == [("given", False), ("dense", True)]
-    alone = pose_errors(meta.poses, result.transform, register(reference, meta, near, settings).transform)
-    assert alone.rotation_deg < 0.3 and alone.translation < 0.01, alone  # not to the bit: the near plane follows the given start's scale
     anchored = settings.changed(optimiser={"update_centre": "look-at"}, anchors={"weight": 1.0})
     keypoints = projected_keypoints(reference, meta, ground_truth, 40, 0.0, seed=3)
     held = register(reference, meta, near, anchored, keypoints=keypoints, other_starts=[("dense", far)])
@@ -1464,7 +1461,6 @@ class _CentreLosses:
         self.photos, self.centres = meta.photos, camera_centres(np.stack(meta.poses))
         self.target = truth.apply(self.centres)
         self.objective = SimpleNamespace(teacher=SimpleNamespace(grid_size=32))
-        self.visible = None  # no model to cull
 
     def __call__(self, transform, indices):
         moved = transform.numpy().apply(self.centres)

@@ -48,8 +48,6 @@ def best_hypothesis(
     kept += [(label, (None, 1.0), transform, coarse_score(transform)) for label, transform in other_starts]
     runs = []
     for label, origin, transform, start_score in kept:
-        if stage.losses.visible is not None:  # cull at this start, as a run from it alone would: each start's end is its own
-            stage.losses.visible.cull(transform)
         own = History(history.names)
         final, _ = optimise_stage(stage, meta, transform, settings, own, first_step, on_step, anchor=anchor)
         runs.append((final, judge_score(final), own, label, origin, start_score))

@@ -232,7 +232,8 @@ def test_a_trained_reference_is_reused_while_its_config_exists(tmp_path):
 
 def test_a_scene_runner_registers_a_perturbed_start_and_records_why_the_initialisers_cannot(quick_trained, bench_dir, short_preset, tmp_path):
     """A perturbed run and a 3-photo subset run register and write their records; the tiny reference gives no SIFT
-    cloud, so the keypoints are none and the colmap initialiser's run records that sentence without registering."""
+    cloud, so the keypoints are none (and the dense start runs beside the perturbed one, as fast-cpu asks) and the
+    colmap initialiser's run records that sentence without registering."""
     from sg_nerfstudio.geometry.meta_image import load_meta_image
 
     scene = read_scene(bench_dir / "tiny")
@@ -244,7 +245,8 @@ def test_a_scene_runner_registers_a_perturbed_start_and_records_why_the_initiali
     assert record == json.loads(record_path(tmp_path, "tiny", "front", "perturbed").read_text())
     assert record["before"]["dR"] == pytest.approx(5.0, abs=1e-6) and record["after"] is not None and record["anchored_photos"] == 0
     assert record["preset"] == "short" and record["photos"] == len(loaded.photos) and record["verdict"] in {"registered", "uncertain", "failed"}
-    assert len(steps) == 3 and {total for _, total in steps} == {3}
+    assert record["other_starts"] == ["dense"] and record["start_won"] in {"given", "dense"}  # no anchors: the dense start runs beside
+    assert len(steps) == 2 * 3 and {total for _, total in steps} == {6}
     subset = runner.run(meta, loaded, RunSpec("size-3-0", "size", "perturbed", "3", subset_size=3), lambda *_: None)
     assert subset["photos"] == 3 and subset["truth_residual"] is None and subset["after"] is not None
     failed = runner.run(meta, loaded, RunSpec("colmap", "table1", "colmap", "colmap"), lambda *_: None)

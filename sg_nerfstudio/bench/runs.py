@@ -215,7 +215,7 @@ class SceneRunner:
                 record["refine_time_s"] = result.wall_time_s
                 record["verdict"], record["verdict_reasons"] = result.verdict.label, result.verdict.reasons
                 record["verdict_evidence"] = result.verdict.as_record()["evidence"]
-                record["start_won"] = next((h["start"] for h in result.hypotheses if h["won"]), "given")
+                record["start_won"] = result.start_won
         write_json_atomically(record_path(self.output, self.scene.name, meta.name, spec.name), record)
         return record
 

@@ -89,6 +89,12 @@ class RegistrationResult:
     taken from nearly one spot): the anchored photos, how far a 2% scale change moved their keypoints and their median
     error (pixels), the factor chosen about their mean camera centre and the objective there; None otherwise."""
 
+    @property
+    def start_won(self) -> str:
+        """The start whose end won: "given" (also when only one ran), "around" (a rotation of it) or another start's
+        label (e.g. "dense")."""
+        return next((h["start"] for h in self.hypotheses if h["won"]), "given")
+
 
 def register(
     reference: ReferenceModel,

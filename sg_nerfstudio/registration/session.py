@@ -301,9 +301,8 @@ def register_one(
             reference, meta, initial, job.settings, photos=photos, on_step=lambda *_: progress.advance(task), objective=objective,
             keypoints=keypoints, other_starts=other_starts,
         )
-    won = next((h["start"] for h in result.hypotheses if h["won"]), "given")
-    if won != "given":
-        console.print(f"{meta.name}: the {won} start ended lower than the given one and was kept (transform.json: hypotheses).")
+    if result.start_won not in ("given", "around"):  # a start beside the given one (e.g. the dense start)
+        console.print(f"{meta.name}: the {result.start_won} start ended lower than the given one and was kept (transform.json: hypotheses).")
     rendered = result.rendered_model
     if rendered.get("voxel_pixels", 0.0) > job.settings.level_of_detail.voxel_pixels:
         console.print(

@@ -136,6 +136,8 @@ SLOW_TESTS = {
     "tests/test_render.py::test_gradcheck_all_gaussian_parameters_and_viewmats[numba]": "float64 gradcheck through numba: ~10 s",
     "tests/test_dense_init.py::test_auto_falls_back_to_the_dense_start_where_sift_gives_none": "a small gap scene, SIFT and the dense start: ~17 s",
     "tests/test_gap_scenes.py::test_a_gap_scene_holds_its_photo_render_pairs_and_their_gap_measure": "a gap scene and its gap measure: ~11 s",
+    "tests/test_photos.py::test_a_coarse_model_reference_renders_the_photos_model_and_holds_measured_pairs":
+        "trains a coarse model, SfM and SIFT on its renders: ~25 s",
 }
 """Tests slow on their own, over ~3 s on the 2-core CI machine (2026-12-06, numba's cache warm): node id -> why. An id
 without parameters marks every parametrisation. tests/test_lint.py checks that each still names a test."""

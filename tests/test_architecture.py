@@ -21,7 +21,7 @@ ALLOWED = {
     "initialisers": {"geometry", "features", "splat"},
     "registration": {"geometry", "features", "render", "splat", "initialisers"},
     "viewer": {"geometry", "splat"},
-    "photos": {"geometry", "initialisers", "synthetic"},
+    "photos": {"geometry", "initialisers", "synthetic", "features", "splat", "registration"},
     "bench": {"geometry", "features", "render", "splat", "initialisers", "registration", "synthetic"},
     "scripts": {"geometry", "features", "render", "splat", "initialisers", "registration", "viewer", "bench", "synthetic", "photos"},
 }

@@ -19,6 +19,7 @@ from PIL import Image
 from sg_nerfstudio.geometry.alignment import AlignmentError, align_cameras
 from sg_nerfstudio.geometry.meta_image import load_meta_image
 from sg_nerfstudio.geometry.sim3 import Sim3
+from sg_nerfstudio.photos.coarse_reference import CoarseModelSettings, new_view_poses, smooth_field
 from sg_nerfstudio.photos.collection import prepare_photos
 from sg_nerfstudio.photos.scene import RealSceneError, RealSceneSettings, build_real_scene, split_photos
 from sg_nerfstudio.photos.sfm import SfmSettingsError
@@ -354,3 +355,73 @@ def test_a_truncated_training_image_is_refused_before_anything_is_written(tiny_s
     with pytest.raises(DatasetInputError, match=rf"Image {cut} of the COLMAP model .* could not be read as an image .*; expected a complete JPEG or PNG"):
         config.save_config()
     assert not runs.exists()
+
+
+def test_a_coarse_model_reference_renders_the_photos_model_and_holds_measured_pairs(photo_scene, photos, tmp_path):
+    from sg_nerfstudio.bench.gap import measure_gap
+    from sg_nerfstudio.bench.layout import read_benchmark
+    from sg_nerfstudio.bench.pairs import read_pairs
+
+    cameras = colmap_cameras(photo_scene, tmp_path / "cameras")
+    settings = RealSceneSettings(
+        reference_every=3, meta_size=4, reference_size=320, photo_size=160, appearance_strength=0.3, occluder_rate=0.0,
+        min_reference_points=10, reference_kind="coarse-model", coarse=CoarseModelSettings(train_size=320, steps=300),
+    )
+    output = tmp_path / "bench" / "scene"
+    manifest = build_real_scene(photos, output, settings, cameras, measure_pairs=measure_gap)
+    reference = manifest["reference"]
+    # the four reference photos' cameras and a lifted view between each two neighbours, all rendered from the model
+    assert reference["kind"] == "coarse-model" and len(reference["images"]) == 7
+    assert sorted(p.name for p in (output / "reference" / "images").iterdir()) == sorted(reference["images"])
+    model = pycolmap.Reconstruction(str(output / "reference" / "colmap" / "sparse" / "0"))
+    assert model.num_reg_images() == 7 and model.num_points3D() == reference["n_points3D"] >= 10
+    assert reference["coarse_model"]["gaussians"] > 0 and reference["coarse_model"]["scene_depth"] > 0
+    # every meta photo has its render at its size; the builder measured them as bench.gap does
+    pairs = read_pairs(output / "pairs")
+    (meta,) = [m for m in manifest["meta_images"] if m["written"]]
+    assert sorted(p.name for p in pairs) == sorted(Path(n).stem for n in meta["photos"])
+    assert manifest["gap"]["measured"] and manifest["gap"]["pairs"] == len(pairs)
+    (scene,) = read_benchmark(tmp_path / "bench")
+    assert scene.metas[0].name == meta["name"]
+    assert not (output / "work").exists()
+
+
+def test_a_filtered_photo_reference_says_it_has_no_gap_measure(photo_scene, photos, tmp_path):
+    settings = RealSceneSettings(reference_every=3, meta_size=4, reference_size=160, photo_size=160, occluder_rate=0.0, min_reference_points=10)
+    manifest = build_real_scene(photos, tmp_path / "scene", settings, colmap_cameras(photo_scene, tmp_path / "cameras"))
+    assert manifest["reference"]["kind"] == "filtered-photos" and not manifest["gap"]["measured"]
+    assert not (tmp_path / "scene" / "pairs").exists()
+
+
+def test_the_displacement_field_is_smooth_seeded_and_of_its_rms():
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-5, 5, size=(20000, 3))
+    field = smooth_field(points, rms=0.1, wavelength=2.0, seed=3)
+    assert field.shape == points.shape
+    np.testing.assert_allclose(np.sqrt((field ** 2).mean(axis=0)), 0.1, rtol=0.25)
+    np.testing.assert_array_equal(field, smooth_field(points, rms=0.1, wavelength=2.0, seed=3))
+    assert not np.allclose(field, smooth_field(points, rms=0.1, wavelength=2.0, seed=4))
+    # neighbours move together: a step of a hundredth of the wavelength changes the displacement by a few percent
+    near = smooth_field(points + 0.02, rms=0.1, wavelength=2.0, seed=3)
+    assert np.abs(near - field).max() < 0.1 * np.abs(field).max()
+
+
+def test_new_views_sit_between_their_neighbours_lifted_and_look_where_they_looked():
+    # two cameras 2 apart along x, looking along +z (OpenCV: y down, so world up is -y), the scene 4 ahead
+    poses = np.stack([np.concatenate([np.eye(3), -np.array([[x], [0.0], [0.0]])], axis=1) for x in (-1.0, 1.0)])
+    (view,) = new_view_poses(poses, depth=np.array([4.0, 4.0]), lift=0.5)
+    rotation, centre = view[:, :3], -view[:, :3].T @ view[:, 3]
+    np.testing.assert_allclose(centre, [0.0, -0.5, 0.0], atol=1e-12)  # half-way, 0.5 up
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    aim = np.array([0.0, 0.0, 4.0]) - centre
+    np.testing.assert_allclose(rotation[2], aim / np.linalg.norm(aim), atol=1e-12)  # looks at what the neighbours saw
+    assert abs(rotation[0] @ [0.0, 1.0, 0.0]) < 1e-12  # no roll: its x axis stays horizontal
+
+
+def test_coarse_model_settings_out_of_range_are_one_sentence(photos, tmp_path, capsys):
+    output = tmp_path / "scene"
+    args = ["--from-photos", str(photos), "--output", str(output), "--scene.reference-kind", "coarse-model", "--scene.coarse.train-size", "4"]
+    assert make_scene_main(args) == 1
+    assert "Scene setting --scene.coarse.train-size must be" in capsys.readouterr().err and not output.exists()
+    with pytest.raises(RealSceneError, match="--scene.coarse.tint must be"):
+        build_real_scene(photos, output, RealSceneSettings(coarse=CoarseModelSettings(tint=(1.0, -1.0, 1.0))))

@@ -13,7 +13,10 @@ with cameras this builds the same kind of scene:
    consecutive photos (the last window is moved back to stay full, so two meta-images can share a photo);
 3. the reference: its photos at `reference_size` with a pseudo-synthetic look (edge-preserving smoothing
    that removes fine texture, grey-world colour), its cameras from the solution, and a SIFT point cloud
-   triangulated with those poses fixed (`initialisers.reference_cloud`) for the splat's initialisation;
+   triangulated with those poses fixed (`initialisers.reference_cloud`) for the splat's initialisation; or, with
+   `reference_kind="coarse-model"` (the paper's setting, where SIFT rarely matches photo and reference), renders of a
+   coarse splat of those photos from their cameras and new ones (`photos.coarse_reference`), the SIFT cloud
+   triangulated on the renders, and `pairs/<meta-image>/`: each meta photo with the model rendered at its true pose;
 4. each meta-image: its photos at `photo_size` with a seeded in-the-wild look (exposure, white balance,
    gamma, blur, noise, JPEG quality; occluders on a share of photos: `synthetic.appearance`), reconstructed
    on its own by SfM (its own frame, scale, intrinsics and errors: `photos.sfm`), and the ground truth
@@ -39,7 +42,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Literal, Optional
 
 import cv2
 import numpy as np
@@ -56,6 +59,9 @@ from sg_nerfstudio.initialisers.estimate import similarity_from_centres
 from sg_nerfstudio.initialisers.features import MatchSettings, SiftExtractor, SiftSettings
 from sg_nerfstudio.initialisers.pipeline import silent_progress
 from sg_nerfstudio.initialisers.reference_cloud import PairingSettings, ReferenceSource, build_reference_cloud
+from sg_nerfstudio.photos.coarse_reference import (
+    COARSE_RANGES, CoarseModel, CoarseModelSettings, median_depths, new_view_poses, render_view, train_coarse_model,
+)
 from sg_nerfstudio.photos.collection import capped_size, list_photos, prepare_photos
 from sg_nerfstudio.photos.meta_images import write_model
 from sg_nerfstudio.photos.sfm import SfmSettings, check_camera_model, reconstruct
@@ -98,6 +104,12 @@ class RealSceneSettings:
     reference come from is not affected."""
     min_reference_points: int = 100
     """Fewer triangulated reference points than this cannot initialise a splat: refused."""
+    reference_kind: Literal["filtered-photos", "coarse-model"] = "filtered-photos"
+    """filtered-photos: the reference photos with the pseudo-synthetic look (`reference_smoothing`), which SIFT still
+    matches to the meta photos; coarse-model: renders of a coarse model of them, the paper's setting (SIFT across
+    photo and reference as rare as on the paper's pairs: photos/coarse_reference.py, docs/gap-scenes.md)."""
+    coarse: CoarseModelSettings = CoarseModelSettings()
+    """The coarse model and its look (reference_kind coarse-model only)."""
     seed: int = 0
 
 
@@ -132,12 +144,13 @@ REAL_SCENE_RANGES = {
 
 def check_real_scene_ranges(settings: RealSceneSettings) -> None:
     """RealSceneError naming the first numeric setting that is not a finite number in its range."""
-    for name, bounds in REAL_SCENE_RANGES.items():
-        value = getattr(settings, name)
-        for entry in value if isinstance(value, tuple) else (value,):
-            problem = range_problem(entry, **bounds)
-            if problem:
-                raise RealSceneError(f"Scene setting --scene.{name.replace('_', '-')} must be {problem}, got {entry!r}.")
+    for group, ranges, prefix in ((settings, REAL_SCENE_RANGES, "--scene."), (settings.coarse, COARSE_RANGES, "--scene.coarse.")):
+        for name, bounds in ranges.items():
+            value = getattr(group, name)
+            for entry in value if isinstance(value, tuple) else (value,):
+                problem = range_problem(entry, **bounds)
+                if problem:
+                    raise RealSceneError(f"Scene setting {prefix}{name.replace('_', '-')} must be {problem}, got {entry!r}.")
     for name in ("occluder_coverage", "jpeg_quality"):
         low, high = getattr(settings, name)
         if low > high:
@@ -146,9 +159,10 @@ def check_real_scene_ranges(settings: RealSceneSettings) -> None:
 
 def build_real_scene(
     photos: Path, output: Path, settings: RealSceneSettings, cameras: Optional[Path] = None,
-    overwrite: bool = False, stage: Optional[Stage] = None,
+    overwrite: bool = False, stage: Optional[Stage] = None, measure_pairs: Optional[Callable[[Path], dict]] = None,
 ) -> dict:
-    """Write the scene (module docstring) into `output`; returns the manifest (scene.json)."""
+    """Write the scene (module docstring) into `output`; returns the manifest (scene.json). `measure_pairs` (a coarse-model
+    reference only: `bench.gap.measure_gap`) fills its "gap" record from the photo/render pairs."""
     stage = stage or (lambda _: None)
     started = time.perf_counter()
     check_real_scene_ranges(settings)
@@ -170,14 +184,21 @@ def build_real_scene(
         unit = scene_unit(np.stack([solution[n].cam_from_world for n in reference_names]))
         for photo in solution.values():
             photo.cam_from_world = np.concatenate([photo.cam_from_world[:, :3], photo.cam_from_world[:, 3:] * unit], axis=1)
-        stage("reference: pseudo-synthetic images and triangulation")
-        reference = write_reference(root / "reference", work, [solution[n] for n in reference_names], settings)
+        reference_photos = [solution[n] for n in reference_names]
+        coarse = None
+        if settings.reference_kind == "coarse-model":
+            reference, coarse = write_coarse_reference(root / "reference", work, reference_photos, settings, stage)
+        else:
+            stage("reference: pseudo-synthetic images and triangulation")
+            reference = write_reference(root / "reference", work, reference_photos, settings)
         rng = np.random.default_rng(settings.seed)
         metas = []
         for window in meta_windows:
             name = f"{Path(window[0]).stem}-{Path(window[-1]).stem}"
             stage(f"meta-image {name}: in-the-wild photos and SfM")
             metas.append(write_meta(root / "meta" / name, work / name, [solution[n] for n in window], settings, rng))
+            if coarse is not None and metas[-1]["written"]:
+                write_pairs(root / "pairs" / name, work / name / "images", [solution[n] for n in window], coarse, settings.coarse)
         if not any(m["written"] for m in metas):
             raise RealSceneError(
                 f"No meta-image of {photos} could be reconstructed on its own ({metas[0]['why']}); expected overlapping photos."
@@ -194,6 +215,11 @@ def build_real_scene(
             "reference": reference,
             "meta_images": metas,
         }
+        if coarse is None:
+            manifest["gap"] = {"measured": False, "why": "a filtered-photos reference has no renders at the photos' poses"}
+        else:
+            stage("measuring the photo/reference gap")
+            manifest["gap"] = measure_pairs(root / "pairs") if measure_pairs else {"measured": False, "why": "no measure was asked for"}
         shutil.rmtree(work)
         manifest["wall_time_s"] = round(time.perf_counter() - started, 2)
         (root / "scene.json").write_text(json.dumps(manifest, indent=2, default=float))
@@ -311,36 +337,116 @@ def pseudo_synthetic(image: Image.Image, strength: float) -> Image.Image:
 
 
 def write_reference(directory: Path, work: Path, photos: list[SolvedPhoto], settings: RealSceneSettings) -> dict:
-    """reference/images/*.png and reference/colmap/sparse/0 (solution poses, triangulated SIFT points)."""
+    """reference/images/*.png (the photos with the pseudo-synthetic look) and reference/colmap/sparse/0 (solution
+    poses, triangulated SIFT points)."""
     images = directory / "images"
     images.mkdir(parents=True)
-    model = pycolmap.Reconstruction()
-    for index, photo in enumerate(photos, start=1):
+    views = []
+    for photo in photos:
         clean = Image.open(work / "clean" / photo.name)
         size = capped_size(clean.size, settings.reference_size)
         name = f"{Path(photo.name).stem}.png"
         pseudo_synthetic(clean.resize(size, Image.Resampling.LANCZOS), settings.reference_smoothing).save(images / name)
-        camera = pycolmap.Camera(photo.camera.todict())
-        camera.rescale(*size)
+        views.append((name, _rescaled(photo.camera, size), photo.cam_from_world))
+    cloud = triangulate_posed(images, work / "reference_cloud", views, settings.min_reference_points, f"the {len(photos)} reference photos")
+    (directory / "colmap" / "sparse" / "0").mkdir(parents=True)
+    cloud.write_binary(str(directory / "colmap" / "sparse" / "0"))
+    return {"path": "reference", "kind": "filtered-photos", "images": [v[0] for v in views], "n_points3D": int(cloud.num_points3D())}
+
+
+def write_coarse_reference(
+    directory: Path, work: Path, photos: list[SolvedPhoto], settings: RealSceneSettings, stage: Stage,
+) -> tuple[dict, CoarseModel]:
+    """reference/images/*.png rendered from a coarse model of the reference photos (photos/coarse_reference.py) at their
+    cameras and new ones, and reference/colmap/sparse/0 (those poses, SIFT points triangulated on the renders); returns
+    the record and the model (for the photo/render pairs)."""
+    coarse = settings.coarse
+    source = work / "coarse_source"
+    (source / "images").mkdir(parents=True)
+    stage("coarse model: triangulating the reference photos")
+    views = []
+    for photo in photos:
+        clean = Image.open(work / "clean" / photo.name)
+        size = capped_size(clean.size, settings.reference_size)
+        name = f"{Path(photo.name).stem}.png"
+        clean.resize(size, Image.Resampling.LANCZOS).save(source / "images" / name)
+        views.append((name, _rescaled(photo.camera, size), photo.cam_from_world))
+    cloud = triangulate_posed(source / "images", work / "coarse_cloud", views, settings.min_reference_points, f"the {len(photos)} reference photos")
+    for image_id in cloud.reg_image_ids():  # the model trains at its texture resolution
+        image = cloud.images[image_id]
+        path = source / "images" / image.name
+        small = capped_size(Image.open(path).size, coarse.train_size)
+        Image.open(path).resize(small, Image.Resampling.LANCZOS).save(path)
+        cloud.cameras[image.camera_id] = _rescaled(cloud.cameras[image.camera_id], small)
+    (source / "colmap" / "sparse" / "0").mkdir(parents=True)
+    cloud.write_binary(str(source / "colmap" / "sparse" / "0"))
+    poses = np.stack([photo.cam_from_world for photo in photos])
+    depths = median_depths(poses, np.stack([p.xyz for p in cloud.points3D.values()]))
+    stage(f"coarse model: training {coarse.steps} steps on the reference photos at {coarse.train_size} px")
+    model = train_coarse_model(source, work / "coarse_model", coarse, settings.seed, float(np.median(depths)))
+    if coarse.new_views:
+        for index, pose in enumerate(new_view_poses(poses, depths, coarse.lift * model.depth)):
+            name = f"view-{Path(photos[index].name).stem}-{Path(photos[index + 1].name).stem}.png"
+            views.append((name, views[index][1], pose))
+    stage(f"coarse model: rendering {len(views)} reference views")
+    images = directory / "images"
+    images.mkdir(parents=True)
+    for name, camera, pose in views:
+        render_view(model, camera, pose, coarse).save(images / name)
+    rendered = triangulate_posed(images, work / "reference_cloud", views, settings.min_reference_points, "the coarse model's renders")
+    (directory / "colmap" / "sparse" / "0").mkdir(parents=True)
+    rendered.write_binary(str(directory / "colmap" / "sparse" / "0"))
+    record = {
+        "path": "reference", "kind": "coarse-model", "images": [v[0] for v in views], "n_points3D": int(rendered.num_points3D()),
+        "coarse_model": {
+            "gaussians": model.gaussians, "train_s": round(model.train_s, 2), "photo_points3D": int(cloud.num_points3D()),
+            "scene_depth": round(model.depth, 4),
+        },
+    }
+    return record, model
+
+
+def write_pairs(directory: Path, styled: Path, photos: list[SolvedPhoto], model: CoarseModel, coarse: CoarseModelSettings) -> None:
+    """pairs/<meta-image>/photos/ (its in-the-wild photos) and renders/ (the coarse model in the reference's look at each
+    photo's solution camera, at the photo's size): the layout `sg-bench teacher` reads."""
+    (directory / "photos").mkdir(parents=True)
+    (directory / "renders").mkdir(parents=True)
+    for photo in photos:
+        shutil.copy2(styled / photo.name, directory / "photos" / photo.name)
+        render_view(model, photo.camera, photo.cam_from_world, coarse).save(directory / "renders" / f"{Path(photo.name).stem}.png")
+
+
+def triangulate_posed(
+    images: Path, work: Path, views: list[tuple[str, pycolmap.Camera, Array]], min_points: int, what: str,
+) -> pycolmap.Reconstruction:
+    """SIFT points of `images` triangulated with every view's (image name, camera at the image's size, cam_from_world
+    [3, 4]) held fixed (`initialisers.reference_cloud`); RealSceneError with fewer than `min_points`."""
+    model = pycolmap.Reconstruction()
+    for index, (name, camera, pose) in enumerate(views, start=1):
+        camera = pycolmap.Camera(camera.todict())
         camera.camera_id = index
         model.add_camera_with_trivial_rig(camera)
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(photo.cam_from_world[:, :3]), photo.cam_from_world[:, 3])
-        model.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=index, image_id=index), pose)
-    (work / "reference_poses").mkdir()
-    model.write_binary(str(work / "reference_poses"))
+        rigid = pycolmap.Rigid3d(pycolmap.Rotation3d(pose[:, :3]), pose[:, 3])
+        model.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=index, image_id=index), rigid)
+    (work / "poses").mkdir(parents=True)
+    model.write_binary(str(work / "poses"))
     cloud = build_reference_cloud(
-        ReferenceSource(work / "reference_poses", images), SiftExtractor(SiftSettings()), MatchSettings(), PairingSettings(),
-        work / "reference_cloud", silent_progress,
+        ReferenceSource(work / "poses", images), SiftExtractor(SiftSettings()), MatchSettings(), PairingSettings(),
+        work / "cloud", silent_progress,
     )
     points = cloud.reconstruction.num_points3D()
-    if points < settings.min_reference_points:
+    if points < min_points:
         raise RealSceneError(
-            f"Triangulating the {len(photos)} reference photos gave {points} 3D points; expected at least "
-            f"{settings.min_reference_points} to initialise the splat (photos with more overlap or texture)."
+            f"Triangulating {what} gave {points} 3D points; expected at least {min_points} to initialise the splat "
+            "(photos with more overlap or texture)."
         )
-    (directory / "colmap" / "sparse" / "0").mkdir(parents=True)
-    cloud.reconstruction.write_binary(str(directory / "colmap" / "sparse" / "0"))
-    return {"path": "reference", "images": [f"{Path(p.name).stem}.png" for p in photos], "n_points3D": int(points)}
+    return cloud.reconstruction
+
+
+def _rescaled(camera: pycolmap.Camera, size: tuple[int, int]) -> pycolmap.Camera:
+    rescaled = pycolmap.Camera(camera.todict())
+    rescaled.rescale(*size)
+    return rescaled
 
 
 # ---------------------------------------------------------------------------------------- meta-images

@@ -7,6 +7,7 @@
     sg-make-scene --preset gap-benchmark --output gap-bench    # the benchmark's landmarks in that setting
     sg-make-scene --preset gap-benchmark --draw 1 --output gap-bench-1   # another draw of them
     sg-make-scene --from-photos photos/ --cameras cameras/ --output real/fountain   # from real photos
+    sg-make-scene --from-photos photos/ --scene.reference-kind coarse-model --output gap-real/sceaux   # the paper's setting
 
 `--preset` picks the starting settings (see `sg_nerfstudio.synthetic.PRESETS`); every other flag
 overrides one of them (`sg-make-scene --preset tiny --help` lists them with the preset's values).
@@ -18,6 +19,9 @@ reads; it takes only --output, --overwrite and --draw N (another draw of the sam
 `--from-photos PHOTOS` builds a scene from real photographs instead (sg_nerfstudio/photos/scene.py: the
 reference from part of the photos with a pseudo-synthetic look, meta-images from the others, each with its
 own SfM, ground truth from --cameras (Strecha `.camera` files or a COLMAP model) or SfM on all photos).
+With `--scene.reference-kind coarse-model` the reference images are renders of a coarse model of those photos
+instead, the paper's setting (photos/coarse_reference.py); the scene then holds its photo/render pairs and the
+builder prints their gap as for the gap presets.
 """
 
 from __future__ import annotations
@@ -94,10 +98,16 @@ def _truths_differ(meta: dict) -> str:
 def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
     set_colmap_verbosity(args.verbose)
     with console.status("building the scene") as status:
-        manifest = build_real_scene(args.from_photos, args.output, args.scene, args.cameras, args.overwrite, lambda text: status.update(text))
+        manifest = build_real_scene(
+            args.from_photos, args.output, args.scene, args.cameras, args.overwrite, lambda text: status.update(text), measure_pairs=measure_gap,
+        )
     written = [m for m in manifest["meta_images"] if m["written"]]
+    reference = manifest["reference"]
+    what = "photos" if reference["kind"] == "filtered-photos" else (
+        f"renders of a coarse model ({reference['coarse_model']['gaussians']} Gaussians, trained in {reference['coarse_model']['train_s']:.0f} s)"
+    )
     console.print(
-        f"Wrote {args.output}: reference of {len(manifest['reference']['images'])} photos ({manifest['reference']['n_points3D']} "
+        f"Wrote {args.output}: reference of {len(reference['images'])} {what} ({reference['n_points3D']} "
         f"triangulated points), meta-images " + ", ".join(
             f"{m['name']} ({m['n_photos']} photos, ground-truth residual <= {m['gt_residual_rotation_deg_max']:.2f} deg, "
             f"{_truths_differ(m)})" for m in written
@@ -109,6 +119,8 @@ def make_from_photos(args: FromPhotosArgs, console: Console) -> int:
             console.print(f"Meta-image {meta['name']} was left out: its own SfM formed no model ({meta['why']}).", soft_wrap=True, markup=False)
     if manifest["left_out"]:
         console.print(f"Photos the solution could not place (left out): {', '.join(manifest['left_out'])}.", soft_wrap=True, markup=False)
+    if reference["kind"] == "coarse-model":
+        console.print(gap_sentence(manifest["gap"]), soft_wrap=True, markup=False)
     return 0
 
 

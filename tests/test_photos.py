@@ -370,11 +370,11 @@ def test_a_coarse_model_reference_renders_the_photos_model_and_holds_measured_pa
     output = tmp_path / "bench" / "scene"
     manifest = build_real_scene(photos, output, settings, cameras, measure_pairs=measure_gap)
     reference = manifest["reference"]
-    # the four reference photos' cameras and a lifted view between each two neighbours, all rendered from the model
-    assert reference["kind"] == "coarse-model" and len(reference["images"]) == 7
+    # the four reference photos' cameras and three lifted views between each two neighbours, all rendered from the model
+    assert reference["kind"] == "coarse-model" and len(reference["images"]) == 4 + 3 * 3
     assert sorted(p.name for p in (output / "reference" / "images").iterdir()) == sorted(reference["images"])
     model = pycolmap.Reconstruction(str(output / "reference" / "colmap" / "sparse" / "0"))
-    assert model.num_reg_images() == 7 and model.num_points3D() == reference["n_points3D"] >= 10
+    assert model.num_reg_images() == 13 and model.num_points3D() == reference["n_points3D"] >= 10
     assert reference["coarse_model"]["gaussians"] > 0 and reference["coarse_model"]["scene_depth"] > 0
     # every meta photo has its render at its size; the builder measured them as bench.gap does
     pairs = read_pairs(output / "pairs")
@@ -409,13 +409,15 @@ def test_the_displacement_field_is_smooth_seeded_and_of_its_rms():
 def test_new_views_sit_between_their_neighbours_lifted_and_look_where_they_looked():
     # two cameras 2 apart along x, looking along +z (OpenCV: y down, so world up is -y), the scene 4 ahead
     poses = np.stack([np.concatenate([np.eye(3), -np.array([[x], [0.0], [0.0]])], axis=1) for x in (-1.0, 1.0)])
-    (view,) = new_view_poses(poses, depth=np.array([4.0, 4.0]), lift=0.5)
-    rotation, centre = view[:, :3], -view[:, :3].T @ view[:, 3]
-    np.testing.assert_allclose(centre, [0.0, -0.5, 0.0], atol=1e-12)  # half-way, 0.5 up
-    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
-    aim = np.array([0.0, 0.0, 4.0]) - centre
-    np.testing.assert_allclose(rotation[2], aim / np.linalg.norm(aim), atol=1e-12)  # looks at what the neighbours saw
-    assert abs(rotation[0] @ [0.0, 1.0, 0.0]) < 1e-12  # no roll: its x axis stays horizontal
+    views = new_view_poses(poses, depth=np.array([4.0, 4.0]), lift=0.5, per_gap=3)
+    assert views.shape == (3, 3, 4)
+    for view, x in zip(views, (-0.5, 0.0, 0.5)):
+        rotation, centre = view[:, :3], -view[:, :3].T @ view[:, 3]
+        np.testing.assert_allclose(centre, [x, -0.5, 0.0], atol=1e-12)  # evenly spaced, 0.5 up
+        np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+        aim = np.array([x, 0.0, 4.0]) - centre
+        np.testing.assert_allclose(rotation[2], aim / np.linalg.norm(aim), atol=1e-12)  # looks at what its neighbours saw
+        assert abs(rotation[0] @ [0.0, 1.0, 0.0]) < 1e-12  # no roll: its x axis stays horizontal
 
 
 def test_coarse_model_settings_out_of_range_are_one_sentence(photos, tmp_path, capsys):

@@ -9,8 +9,8 @@ reference photos of a real scene:
    (`CoarseModelSettings.train_size`: the texture resolution of the model), with the photos' solution cameras;
 2. its content moved off the true surfaces by a smooth random 3D displacement of its Gaussians (`displacement`, RMS
    per axis in scene units, over `displacement_wavelength`): the same in every view, it belongs to the model;
-3. renders of it from the reference cameras and from new views between neighbouring reference cameras, lifted above
-   them (`lift`) and aimed where their neighbours look: a virtual capture has more and higher viewpoints than the
+3. renders of it from the reference cameras and from `new_views` views in each gap between neighbouring reference
+   cameras, lifted above them (`lift`) and aimed where their neighbours look: a virtual capture has more and higher viewpoints than the
    photos; each finished with a Google-Earth-like look (saturation, tint, aerial haze by rendered depth:
    `synthetic.appearance.ReferenceLook.finish`);
 4. the same model and look rendered at every meta-image photo's true camera: the scene's photo/render pairs
@@ -58,8 +58,10 @@ class CoarseModelSettings:
     displacement_wavelength: float = 0.4
     """Length over which the displacement changes, as a share of that depth (the synthetic look's 6 m cells seen from
     about 30 m): neighbouring content moves together, but a view's content does not all move one way."""
-    new_views: bool = True
-    """Also render a view between each two neighbouring reference cameras, lifted by `lift`."""
+    new_views: int = 3
+    """Views rendered between each two neighbouring reference cameras besides theirs, lifted by `lift`: a virtual
+    capture has many more viewpoints than the photos (Google Earth Studio: hundreds), and a reference trained on at
+    least 20 views is densified (`splat.method.SPARSE_VIEWS`)."""
     lift: float = 0.1
     """How far the new views sit above the line between their neighbours (up: the cameras' mean up), as a share of
     that depth."""
@@ -73,6 +75,7 @@ class CoarseModelSettings:
 
 COARSE_RANGES = {
     "train_size": dict(whole=True, minimum=16), "steps": dict(whole=True, minimum=1), "displacement": dict(minimum=0),
+    "new_views": dict(whole=True, minimum=0),
     "displacement_wavelength": dict(minimum=1e-6), "lift": dict(minimum=0), "saturation": dict(minimum=0),
     "tint": dict(minimum=0), "haze": dict(minimum=0),
 }
@@ -136,22 +139,24 @@ def smooth_field(points: Array, rms: float, wavelength: float, seed: int) -> Arr
     return rms * np.sqrt(2.0 / DISPLACEMENT_WAVES) * np.sin(angles).sum(axis=1)
 
 
-def new_view_poses(cam_from_world: Array, depth: Array, lift: float) -> Array:
-    """[N - 1, 3, 4] views between neighbouring cameras `cam_from_world` [N, 3, 4] (ordered along the path): rotation
-    half-way (slerp), centre half-way and lifted by `lift` along the cameras' mean up, turned down to look at the point
-    that the half-way camera saw at the mean of its neighbours' scene depth `depth` [N]."""
+def new_view_poses(cam_from_world: Array, depth: Array, lift: float, per_gap: int = 1) -> Array:
+    """[(N - 1) * per_gap, 3, 4] views between neighbouring cameras `cam_from_world` [N, 3, 4] (ordered along the path),
+    `per_gap` evenly spaced in each gap: rotation interpolated (slerp), centre interpolated and lifted by `lift` along
+    the cameras' mean up, turned down to look at the point that the interpolated camera saw at its neighbours' mean
+    scene depth `depth` [N]."""
     centres = camera_centres(cam_from_world)
     up = -np.mean(cam_from_world[:, 1, :3], axis=0)  # OpenCV y points down; row 1 of R_cw is the camera's y in world
     up /= np.linalg.norm(up)
     views = []
     for i in range(len(cam_from_world) - 1):
-        rotations = Rotation.from_matrix(cam_from_world[i:i + 2, :, :3])
-        rotation = Slerp([0.0, 1.0], rotations)(0.5).as_matrix()  # world -> camera
-        centre = 0.5 * (centres[i] + centres[i + 1])
-        target = centre + 0.5 * (depth[i] + depth[i + 1]) * rotation[2]  # the optical axis in world is row 2
-        lifted = centre + lift * up
-        rotation = look_at(lifted, target, rotation)
-        views.append(np.concatenate([rotation, (-rotation @ lifted)[:, None]], axis=1))
+        between = Slerp([0.0, 1.0], Rotation.from_matrix(cam_from_world[i:i + 2, :, :3]))
+        for fraction in np.arange(1, per_gap + 1) / (per_gap + 1):
+            rotation = between(fraction).as_matrix()  # world -> camera
+            centre = (1.0 - fraction) * centres[i] + fraction * centres[i + 1]
+            target = centre + 0.5 * (depth[i] + depth[i + 1]) * rotation[2]  # the optical axis in world is row 2
+            lifted = centre + lift * up
+            rotation = look_at(lifted, target, rotation)
+            views.append(np.concatenate([rotation, (-rotation @ lifted)[:, None]], axis=1))
     return np.stack(views) if views else np.zeros((0, 3, 4))
 
 

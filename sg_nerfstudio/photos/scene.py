@@ -384,10 +384,10 @@ def write_coarse_reference(
     depths = median_depths(poses, np.stack([p.xyz for p in cloud.points3D.values()]))
     stage(f"coarse model: training {coarse.steps} steps on the reference photos at {coarse.train_size} px")
     model = train_coarse_model(source, work / "coarse_model", coarse, settings.seed, float(np.median(depths)))
-    if coarse.new_views:
-        for index, pose in enumerate(new_view_poses(poses, depths, coarse.lift * model.depth)):
-            name = f"view-{Path(photos[index].name).stem}-{Path(photos[index + 1].name).stem}.png"
-            views.append((name, views[index][1], pose))
+    for index, pose in enumerate(new_view_poses(poses, depths, coarse.lift * model.depth, coarse.new_views)):
+        gap, within = divmod(index, coarse.new_views)
+        name = f"view-{Path(photos[gap].name).stem}-{Path(photos[gap + 1].name).stem}-{within + 1}.png"
+        views.append((name, views[gap][1], pose))
     stage(f"coarse model: rendering {len(views)} reference views")
     images = directory / "images"
     images.mkdir(parents=True)

@@ -60,8 +60,8 @@ class CoarseModelSettings:
     about 30 m): neighbouring content moves together, but a view's content does not all move one way."""
     new_views: int = 3
     """Views rendered between each two neighbouring reference cameras besides theirs, lifted by `lift`: a virtual
-    capture has many more viewpoints than the photos (Google Earth Studio: hundreds), and a reference trained on at
-    least 20 views is densified (`splat.method.SPARSE_VIEWS`)."""
+    capture has many more viewpoints than the photos (a Google Earth Studio capture: hundreds). With one view per gap
+    the real-photo gap scenes' registrations ended further off (docs/gap-scenes.md)."""
     lift: float = 0.1
     """How far the new views sit above the line between their neighbours (up: the cameras' mean up), as a share of
     that depth."""

@@ -26,9 +26,9 @@ import contextlib
 import io
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 import pycolmap
@@ -39,6 +39,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from sg_nerfstudio.features import TeacherConfig
 from sg_nerfstudio.geometry.alignment import camera_centres
 from sg_nerfstudio.synthetic.appearance import ReferenceLook
+
+if TYPE_CHECKING:
+    from sg_nerfstudio.registration.reference import ReferenceModel
 
 Array = np.ndarray
 
@@ -88,7 +91,7 @@ DISPLACEMENT_WAVES = 12
 class CoarseModel:
     """The trained, displaced coarse model, the depth its settings are relative to, and how long training took."""
 
-    reference: "object"  # registration.reference.ReferenceModel
+    reference: "ReferenceModel"
     depth: float
     """Median scene depth of the reference cameras (scene units): the length the settings are shares of."""
     train_s: float
@@ -115,7 +118,7 @@ def train_coarse_model(source: Path, work: Path, settings: CoarseModelSettings, 
     return CoarseModel(displaced(reference, settings, seed, depth), depth, train_s, reference.count)
 
 
-def displaced(reference, settings: CoarseModelSettings, seed: int, depth: float):
+def displaced(reference: "ReferenceModel", settings: CoarseModelSettings, seed: int, depth: float) -> "ReferenceModel":
     """The model with every Gaussian moved by a smooth random field (module docstring, step 2; lengths: shares of the
     scene `depth`)."""
     if settings.displacement <= 0:
@@ -123,9 +126,7 @@ def displaced(reference, settings: CoarseModelSettings, seed: int, depth: float)
     to_world = reference.world_to_dataparser.inverse()
     world = np.asarray(to_world.apply(reference.means.double().numpy()))
     moved = world + smooth_field(world, settings.displacement * depth, settings.displacement_wavelength * depth, seed)
-    means = torch.from_numpy(np.asarray(reference.world_to_dataparser.apply(moved))).to(reference.means.dtype)
-    reference.means = means
-    return reference
+    return replace(reference, means=torch.from_numpy(np.asarray(reference.world_to_dataparser.apply(moved))).to(reference.means.dtype))
 
 
 def smooth_field(points: Array, rms: float, wavelength: float, seed: int) -> Array:

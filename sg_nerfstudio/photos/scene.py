@@ -375,8 +375,10 @@ def write_coarse_reference(
     for image_id in cloud.reg_image_ids():  # the model trains at its texture resolution
         image = cloud.images[image_id]
         path = source / "images" / image.name
-        small = capped_size(Image.open(path).size, coarse.train_size)
-        Image.open(path).resize(small, Image.Resampling.LANCZOS).save(path)
+        with Image.open(path) as photo:
+            small = capped_size(photo.size, coarse.train_size)
+            shrunk = photo.resize(small, Image.Resampling.LANCZOS)
+        shrunk.save(path)
         cloud.cameras[image.camera_id] = _rescaled(cloud.cameras[image.camera_id], small)
     (source / "colmap" / "sparse" / "0").mkdir(parents=True)
     cloud.write_binary(str(source / "colmap" / "sparse" / "0"))

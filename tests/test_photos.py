@@ -427,3 +427,16 @@ def test_coarse_model_settings_out_of_range_are_one_sentence(photos, tmp_path, c
     assert "Scene setting --scene.coarse.train-size must be" in capsys.readouterr().err and not output.exists()
     with pytest.raises(RealSceneError, match="--scene.coarse.tint must be"):
         build_real_scene(photos, output, RealSceneSettings(coarse=CoarseModelSettings(tint=(1.0, -1.0, 1.0))))
+
+
+def test_renders_sift_cannot_triangulate_are_one_sentence_naming_the_settings(tmp_path, monkeypatch):
+    from sg_nerfstudio.initialisers.reference_cloud import ReferenceSourceError
+    from sg_nerfstudio.photos import scene as scene_module
+
+    def no_pair(source, *args, **kwargs):
+        raise ReferenceSourceError(f"No pair of reference images in {source.colmap_path} has 15 verified SIFT matches.")
+
+    monkeypatch.setattr(scene_module, "build_reference_cloud", no_pair)
+    views = [("a.png", pycolmap.Camera(model="PINHOLE", width=64, height=48, params=[50.0, 50.0, 32.0, 24.0]), np.eye(4)[:3])]
+    with pytest.raises(RealSceneError, match=r"^Triangulating the coarse model's renders gave no 3D points: .*--scene.coarse.steps"):
+        scene_module.triangulate_posed(tmp_path, tmp_path / "work", views, 100, "the coarse model's renders")

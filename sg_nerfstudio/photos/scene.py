@@ -58,7 +58,7 @@ from sg_nerfstudio.geometry.triangulation import track_observations, triangulate
 from sg_nerfstudio.initialisers.estimate import similarity_from_centres
 from sg_nerfstudio.initialisers.features import MatchSettings, SiftExtractor, SiftSettings
 from sg_nerfstudio.initialisers.pipeline import silent_progress
-from sg_nerfstudio.initialisers.reference_cloud import PairingSettings, ReferenceSource, build_reference_cloud
+from sg_nerfstudio.initialisers.reference_cloud import PairingSettings, ReferenceSource, ReferenceSourceError, build_reference_cloud
 from sg_nerfstudio.photos.coarse_reference import (
     COARSE_RANGES, CoarseModel, CoarseModelSettings, median_depths, new_view_poses, render_view, train_coarse_model,
 )
@@ -432,15 +432,23 @@ def triangulate_posed(
         model.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=index, image_id=index), rigid)
     (work / "poses").mkdir(parents=True)
     model.write_binary(str(work / "poses"))
-    cloud = build_reference_cloud(
-        ReferenceSource(work / "poses", images), SiftExtractor(SiftSettings()), MatchSettings(), PairingSettings(),
-        work / "cloud", silent_progress,
+    hint = "photos with more overlap or texture" + (
+        "; for a coarse model, more --scene.coarse.steps or a larger --scene.coarse.train-size" if "coarse" in what else ""
     )
+    try:
+        cloud = build_reference_cloud(
+            ReferenceSource(work / "poses", images), SiftExtractor(SiftSettings()), MatchSettings(), PairingSettings(),
+            work / "cloud", silent_progress,
+        )
+    except ReferenceSourceError:  # no two images share enough verified matches (its sentence names a staging path)
+        raise RealSceneError(
+            f"Triangulating {what} gave no 3D points: no two of them share enough verified SIFT matches; expected at least "
+            f"{min_points} points to initialise the splat ({hint})."
+        ) from None
     points = cloud.reconstruction.num_points3D()
     if points < min_points:
         raise RealSceneError(
-            f"Triangulating {what} gave {points} 3D points; expected at least {min_points} to initialise the splat "
-            "(photos with more overlap or texture)."
+            f"Triangulating {what} gave {points} 3D points; expected at least {min_points} to initialise the splat ({hint})."
         )
     return cloud.reconstruction
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sg_nerfstudio.bench.gap import GAP_TEACHER, PAPER_PAIRS, gap_sentence, in_paper_range, measure_gap, pool, summarise
+from sg_nerfstudio.bench.gap import GAP_TEACHER, PAPER_PAIRS, benchmark_gap, gap_sentence, in_paper_range, measure_gap, pool, summarise
 from sg_nerfstudio.bench.pairs import read_pairs
 from sg_nerfstudio.scripts.make_scene import main as make_scene_main
 from sg_nerfstudio.synthetic import PRESETS, SceneGenerationError, generate_scene
@@ -142,3 +142,21 @@ def test_a_suite_s_gap_pools_its_scenes_photos():
     assert pooled["pairs"] == 4 and pooled["sift_share"] == 0.25 and pooled["identifiable"] == 0.75 and pooled["sift_median"] == 1.5
     assert [p["pair"] for p in pooled["per_pair"]] == ["a/front/p0", "a/front/p1", "b/front/p0", "b/front/p1"]
     assert pool({"tiny": {"measured": False, "why": "small"}})["measured"] is False
+
+
+def test_a_benchmark_s_gap_pools_the_scenes_the_builder_measured(tmp_path):
+    from types import SimpleNamespace
+
+    def scene(name, gap):
+        directory = tmp_path / name
+        directory.mkdir()
+        if gap is not None:
+            (directory / "scene.json").write_text(json.dumps({"gap": gap}))
+        return SimpleNamespace(name=name, directory=directory)
+
+    measured = summarise([{"pair": "m/p0", "sift_matches": 20, "identifiable": True}, {"pair": "m/p1", "sift_matches": 0, "identifiable": False}])
+    scenes = [scene("gap", measured), scene("filtered", {"measured": False, "why": "no renders"}), scene("old", None)]
+    pooled = benchmark_gap(scenes)
+    assert pooled["pairs"] == 2 and pooled["sift_share"] == 0.5 and pooled["identifiable"] == 0.5
+    assert [p["pair"] for p in pooled["per_pair"]] == ["gap/m/p0", "gap/m/p1"]
+    assert benchmark_gap(scenes[1:])["measured"] is False

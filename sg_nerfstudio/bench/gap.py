@@ -12,8 +12,9 @@ set of landmarks (a suite, its photos pooled: `pool`); single landmarks spread w
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Optional
+from typing import Iterable, Optional
 
 import numpy as np
 from PIL import Image as PILImage
@@ -71,6 +72,20 @@ def pool(scenes: dict[str, dict]) -> dict:
     left out, and so is everything when none was measured."""
     per_pair = [{**p, "pair": f"{name}/{p['pair']}"} for name, m in scenes.items() if m.get("measured") for p in m["per_pair"]]
     return summarise(per_pair) if per_pair else {"measured": False, "why": "no scene's photos were measured"}
+
+
+def benchmark_gap(scenes: Iterable) -> dict:
+    """`pool` of the gaps that `sg-make-scene` measured for these scenes (bench.layout.BenchmarkScene: their
+    scene.json "gap"); scenes without a measured gap (filtered-photo references, older scenes) are left out."""
+    measured = {}
+    for scene in scenes:
+        try:
+            gap = json.loads((Path(scene.directory) / "scene.json").read_text()).get("gap") or {}
+        except (OSError, ValueError, AttributeError):
+            continue
+        if gap.get("measured"):
+            measured[scene.name] = gap
+    return pool(measured)
 
 
 def in_paper_range(measures: dict) -> bool:

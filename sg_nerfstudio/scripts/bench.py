@@ -31,6 +31,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from sg_nerfstudio import cli
 from sg_nerfstudio.atomic import OutputPathError, atomic_directory, check_apart_from_inputs, check_new_output_directory, check_output_path, output_lock
+from sg_nerfstudio.bench.gap import benchmark_gap, gap_sentence
 from sg_nerfstudio.bench.layout import read_benchmark
 from sg_nerfstudio.bench.pairs import read_pairs
 from sg_nerfstudio.bench.report import write_results
@@ -149,6 +150,9 @@ def benchmarked(args: BenchArgs, console: Console) -> Path:
         f"Wall time of this invocation: {time.perf_counter() - started:.0f} s; total compute over all invocations "
         f"(training + initialisation + registration): {compute:.0f} s.",
     ]
+    gap = benchmark_gap(scenes)
+    if gap["measured"]:  # gap scenes: how hard their photos are to match to the reference, beside the paper's pairs
+        header.append("Scenes' " + gap_sentence(gap))
     path = write_results(args.output, records, args.initialisers, header, Path(args.config).stem)
     console.print(f"Results: {path} and {args.output / 'results.csv'}")
     return path

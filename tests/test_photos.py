@@ -439,4 +439,4 @@ def test_renders_sift_cannot_triangulate_are_one_sentence_naming_the_settings(tm
     monkeypatch.setattr(scene_module, "build_reference_cloud", no_pair)
     views = [("a.png", pycolmap.Camera(model="PINHOLE", width=64, height=48, params=[50.0, 50.0, 32.0, 24.0]), np.eye(4)[:3])]
     with pytest.raises(RealSceneError, match=r"^Triangulating the coarse model's renders gave no 3D points: .*--scene.coarse.steps"):
-        scene_module.triangulate_posed(tmp_path, tmp_path / "work", views, 100, "the coarse model's renders")
+        scene_module.triangulate_posed(tmp_path, tmp_path / "work", views, 100, "the coarse model's renders", scene_module.RENDERS_HINT)

@@ -395,7 +395,7 @@ def write_coarse_reference(
     images.mkdir(parents=True)
     for name, camera, pose in views:
         render_view(model, camera, pose, coarse).save(images / name)
-    rendered = triangulate_posed(images, work / "reference_cloud", views, settings.min_reference_points, "the coarse model's renders")
+    rendered = triangulate_posed(images, work / "reference_cloud", views, settings.min_reference_points, "the coarse model's renders", RENDERS_HINT)
     (directory / "colmap" / "sparse" / "0").mkdir(parents=True)
     rendered.write_binary(str(directory / "colmap" / "sparse" / "0"))
     record = {
@@ -418,11 +418,16 @@ def write_pairs(directory: Path, styled: Path, photos: list[SolvedPhoto], model:
         render_view(model, photo.camera, photo.cam_from_world, coarse).save(directory / "renders" / f"{Path(photo.name).stem}.png")
 
 
+PHOTOS_HINT = "photos with more overlap or texture"
+RENDERS_HINT = f"{PHOTOS_HINT}; for a coarse model, more --scene.coarse.steps or a larger --scene.coarse.train-size"
+
+
 def triangulate_posed(
-    images: Path, work: Path, views: list[tuple[str, pycolmap.Camera, Array]], min_points: int, what: str,
+    images: Path, work: Path, views: list[tuple[str, pycolmap.Camera, Array]], min_points: int, what: str, hint: str = PHOTOS_HINT,
 ) -> pycolmap.Reconstruction:
     """SIFT points of `images` triangulated with every view's (image name, camera at the image's size, cam_from_world
-    [3, 4]) held fixed (`initialisers.reference_cloud`); RealSceneError with fewer than `min_points`."""
+    [3, 4]) held fixed (`initialisers.reference_cloud`); RealSceneError naming `what` and what to change (`hint`) with
+    fewer than `min_points`."""
     model = pycolmap.Reconstruction()
     for index, (name, camera, pose) in enumerate(views, start=1):
         camera = pycolmap.Camera(camera.todict())
@@ -432,9 +437,6 @@ def triangulate_posed(
         model.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=index, image_id=index), rigid)
     (work / "poses").mkdir(parents=True)
     model.write_binary(str(work / "poses"))
-    hint = "photos with more overlap or texture" + (
-        "; for a coarse model, more --scene.coarse.steps or a larger --scene.coarse.train-size" if "coarse" in what else ""
-    )
     try:
         cloud = build_reference_cloud(
             ReferenceSource(work / "poses", images), SiftExtractor(SiftSettings()), MatchSettings(), PairingSettings(),

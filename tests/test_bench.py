@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from sg_nerfstudio.bench.layout import BenchmarkLayoutError, read_benchmark
+from sg_nerfstudio.bench.layout import BenchmarkLayoutError, read_benchmark, read_benchmarks
 from sg_nerfstudio.bench.photo_losses import occlusion_of, photo_ratios, separation
 from sg_nerfstudio.bench.runs import trained_reference
 from sg_nerfstudio.registration.settings import load_preset
@@ -75,6 +75,21 @@ def test_suite_layout_is_read_back(suite):
     scenes = read_benchmark(suite)
     assert [s.name for s in scenes] == list(SUITES["tiny-benchmark"])
     assert [[m.name for m in s.metas] for s in scenes] == [["front"], ["front", "rear"]]
+
+
+def test_several_benchmarks_are_read_as_one_suite_and_a_shared_scene_name_is_refused(suite, tmp_path, capsys):
+    other = tmp_path / "other"
+    shutil.copytree(suite / "tiny-a", other / "tiny-c")
+    assert [s.name for s in read_benchmarks([suite, other])] == [*SUITES["tiny-benchmark"], "tiny-c"]
+    shutil.copytree(suite / "tiny-b", other / "tiny-b")
+    with pytest.raises(BenchmarkLayoutError, match="share the name 'tiny-b'"):
+        read_benchmarks([suite, other])
+    capsys.readouterr()
+    assert bench_main([str(suite), str(other), "--output", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "share the name 'tiny-b'" in err and len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
+    assert bench_main([str(suite), str(other), "--output", str(tmp_path / "out"), "--twin-anchors", str(tmp_path / "twins")]) == 1
+    assert "expected one" in capsys.readouterr().err and not (tmp_path / "out").exists() and not (tmp_path / "twins").exists()
 
 
 def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path, capsys, monkeypatch):

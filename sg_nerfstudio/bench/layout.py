@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -73,6 +73,23 @@ def read_benchmark(directory: Path) -> list[BenchmarkScene]:
     if not names:
         raise BenchmarkLayoutError(f"Benchmark directory {directory} holds no scene; expected sub-directories with reference/ and meta/.")
     return [read_scene(directory / name) for name in names]
+
+
+def read_benchmarks(directories: Sequence[Path]) -> list[BenchmarkScene]:
+    """The scenes of several benchmark directories as one suite (e.g. synthetic and real-photo gap scenes side by
+    side), in the order given; BenchmarkLayoutError when two scenes share a name (their runs and references would
+    share one folder of the output)."""
+    scenes: list[BenchmarkScene] = []
+    for directory in directories:
+        for scene in read_benchmark(directory):
+            clash = next((other for other in scenes if other.name == scene.name), None)
+            if clash is not None:
+                raise BenchmarkLayoutError(
+                    f"Scenes {clash.directory} and {scene.directory} share the name {scene.name!r}; expected every scene of the "
+                    "benchmarks run together to have its own name (rename one folder, or run them with separate --output)."
+                )
+            scenes.append(scene)
+    return scenes
 
 
 def read_scene(directory: Path) -> BenchmarkScene:

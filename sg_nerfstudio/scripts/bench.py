@@ -9,7 +9,8 @@ offline teacher (or reuse one from an earlier run), then for each meta-image run
 registration from its start, plus ablations and robustness runs on request (sg_nerfstudio/bench/runs.py).
 Writes `<output>/results.md` and `results.csv` (Table 1 layout, threshold sweeps, per-meta-image breakdown,
 ablations) and PNG robustness curves (bench/report.py). Resumable: run the same command again after an
-interruption and finished references and runs are reused.
+interruption and finished references and runs are reused. Several benchmark directories are run as one suite
+(`sg-bench gap-benchmark gap-real --output gap-results`: synthetic and real-photo scenes in one table).
 
     sg-bench teacher PAIRS --output OUT [--teachers colour offline dense-sift hog-layout] [--dinov2-weights W]
 
@@ -32,7 +33,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from sg_nerfstudio import cli
 from sg_nerfstudio.atomic import OutputPathError, atomic_directory, check_apart_from_inputs, check_new_output_directory, check_output_path, output_lock
 from sg_nerfstudio.bench.gap import benchmark_gap, gap_sentence
-from sg_nerfstudio.bench.layout import read_benchmark
+from sg_nerfstudio.bench.layout import BenchmarkLayoutError, read_benchmark, read_benchmarks
 from sg_nerfstudio.bench.pairs import read_pairs
 from sg_nerfstudio.bench.report import write_results
 from sg_nerfstudio.bench.teacher import BASELINE, build_describers, run_pairs
@@ -56,8 +57,9 @@ class BenchArgs:
     """Run the benchmark on every scene of a benchmark directory and write results.md / results.csv. (The teacher
     benchmark on photo/render pairs: `sg-bench teacher --help`.)"""
 
-    benchmark: Annotated[Path, tyro.conf.Positional]
-    """Benchmark directory (e.g. from `sg-make-scene --preset benchmark`)."""
+    benchmarks: Annotated[tuple[Path, ...], tyro.conf.Positional]
+    """Benchmark directories (e.g. from `sg-make-scene --preset benchmark`); several are run as one suite, their
+    scenes side by side in one table (every scene name must differ), e.g. the synthetic and the real-photo gap scenes."""
     output: Path
     """Results, trained references and per-run records; reused when the command is run again."""
     config: str = "fast-cpu"
@@ -100,9 +102,11 @@ class BenchArgs:
 def run(args: BenchArgs, console: Console) -> Path:
     """Train, register and tabulate (module docstring), under the lock of the results directory (`atomic.output_lock`)."""
     presets = [Path(name) for name in (args.config, *args.compare_config) if name not in PRESETS]
-    check_apart_from_inputs(args.output, [args.benchmark, args.twin_anchors, *presets])
+    check_apart_from_inputs(args.output, [*args.benchmarks, args.twin_anchors, *presets])
     if args.twin_anchors is not None:
-        check_apart_from_inputs(args.twin_anchors, [args.benchmark, args.output, *presets])
+        if len(args.benchmarks) != 1:
+            raise BenchmarkLayoutError(f"--twin-anchors copies one benchmark directory, and {len(args.benchmarks)} were given; expected one.")
+        check_apart_from_inputs(args.twin_anchors, [*args.benchmarks, args.output, *presets])
     with output_lock(args.output):
         return benchmarked(args, console)
 
@@ -114,9 +118,9 @@ def benchmarked(args: BenchArgs, console: Console) -> Path:
     set_colmap_verbosity(args.verbose)
     runner = SceneRunner
     if args.twin_anchors is not None:  # the twin copies stand in for the benchmark
-        build_twins(args.benchmark, args.twin_anchors, console=console)
+        build_twins(args.benchmarks[0], args.twin_anchors, console=console)
         runner = TwinSceneRunner
-    scenes = read_benchmark(args.benchmark if args.twin_anchors is None else args.twin_anchors)
+    scenes = read_benchmarks(args.benchmarks) if args.twin_anchors is None else read_benchmark(args.twin_anchors)
     options = BenchOptions(
         settings=load_preset(args.config), train_steps=args.train_steps, initialisers=args.initialisers,
         ablations=args.ablations, noise_levels=args.noise_levels, sizes=args.sizes, size_samples=args.size_samples, seed=args.seed,
@@ -145,7 +149,7 @@ def benchmarked(args: BenchArgs, console: Console) -> Path:
     records = read_records(args.output)
     compute = sum(train_seconds.values()) + sum(r["init_time_s"] + r["refine_time_s"] for r in records)
     header = [
-        f"Benchmark {args.benchmark} ({len(scenes)} scenes, {sum(len(s.metas) for s in scenes)} meta-images), preset {args.config}, "
+        f"Benchmark {' + '.join(map(str, args.benchmarks))} ({len(scenes)} scenes, {sum(len(s.metas) for s in scenes)} meta-images), preset {args.config}, "
         f"references trained {args.train_steps} steps on CPU with the offline teacher.",
         f"Wall time of this invocation: {time.perf_counter() - started:.0f} s; total compute over all invocations "
         f"(training + initialisation + registration): {compute:.0f} s.",

@@ -201,6 +201,27 @@ def test_noise_table_names_the_preset_each_run_was_made_with():
     assert rows[2:] == ["| 30, 0.50, 30% | fast-cpu | 3 | 67 | 33 | 7.33 / 1.00 | 0.010 / 0.010 | 1.00 / 0.010 | 2 of 3 | 10 |"]
 
 
+def test_verdict_table_has_one_block_per_preset_and_counts_inaccurate_results_called_registered():
+    from sg_nerfstudio.bench.report import verdict_table
+
+    def record(preset, dR, verdict):
+        return {"preset": preset, "verdict": verdict, "after": {"dR": dR, "dT": 0.01}}
+
+    one = [record("fast-cpu", 1.0, "registered"), record("fast-cpu", 7.0, "registered"), record("fast-cpu", 20.0, "failed")]
+    assert verdict_table(one) == [
+        "| outcome (ground truth) | registered | uncertain | failed |", "|---|---|---|---|",
+        "| accurate | 1 | 0 | 0 |", "| in between | 1 | 0 | 0 |", "| outlier | 0 | 0 | 1 |", "",
+        "Accurate results flagged registered: 100% (1/1); outliers flagged uncertain or failed: 100% (1/1); "
+        "inaccurate results flagged registered: 50% (1/2).",
+    ]
+    both = verdict_table([*one, record("wide-cpu", 7.0, "uncertain"), {**record("wide-cpu", 1.0, None)}])
+    assert both[:2] == ["| preset | outcome (ground truth) | registered | uncertain | failed |", "|---|---|---|---|---|"]
+    assert "| wide-cpu | in between | 0 | 1 | 0 |" in both and "| fast-cpu | accurate | 1 | 0 | 0 |" in both
+    assert both[-1] == ("wide-cpu: Accurate results flagged registered: -; outliers flagged uncertain or failed: -; "
+                        "inaccurate results flagged registered: 0% (0/1).")
+    assert verdict_table([record("fast-cpu", 1.0, None)]) == []
+
+
 def test_start_precision_table_counts_refinements_further_than_their_start_beyond_the_truths_residual(tmp_path):
     """Issue 19 §1 by bands of the start's ΔR: further than the start at all, and by more than gt_transform.json's residual."""
     from sg_nerfstudio.bench.layout import read_meta

@@ -229,23 +229,40 @@ VERDICTS = ("registered", "uncertain", "failed")
 
 
 def verdict_table(records: list[dict]) -> list[str]:
-    """Confusion of the verdict (no ground truth) with the outcome by the paper's thresholds, over every run
-    with a verdict; and the two shares the verdict is judged by."""
+    """Confusion of the verdict (no ground truth) with the outcome by the paper's thresholds, over every run with a
+    verdict (one block per preset where several were run); and the shares the verdict is judged by."""
+    presets = sorted({r.get("preset", "") for r in records if r.get("verdict") and r["after"] is not None})
+    if not presets:
+        return []
+    several = len(presets) > 1
+    lines = [("| preset " if several else "") + "| outcome (ground truth) | registered | uncertain | failed |",
+             "|---|---|---|---|" + ("---|" if several else "")]
+    summaries = []
+    for preset in presets:
+        counts = _verdict_counts([r for r in records if r.get("preset", "") == preset])
+        lines += [(f"| {preset} " if several else "") + f"| {outcome} | " + " | ".join(str(row[v]) for v in VERDICTS) + " |"
+                  for outcome, row in counts.items()]
+        summaries.append((f"{preset}: " if several else "") + _verdict_shares(counts))
+    return lines + [""] + summaries
+
+
+def _verdict_counts(records: list[dict]) -> dict[str, dict[str, int]]:
+    """outcome (accurate, in between, outlier) -> verdict -> runs."""
     counts: dict[str, dict[str, int]] = {outcome: dict.fromkeys(VERDICTS, 0) for outcome in ("accurate", "in between", "outlier")}
     for r in records:
         if r.get("verdict") and r["after"] is not None:
             e = r["after"]
             outcome = "accurate" if e["dR"] < 5 and e["dT"] < 0.2 else "outlier" if e["dR"] > 10 or e["dT"] > 0.5 else "in between"
             counts[outcome][r["verdict"]] += 1
-    if not any(sum(row.values()) for row in counts.values()):
-        return []
-    lines = ["| outcome (ground truth) | registered | uncertain | failed |", "|---|---|---|---|"]
-    lines += [f"| {outcome} | " + " | ".join(str(row[v]) for v in VERDICTS) + " |" for outcome, row in counts.items()]
+    return counts
+
+
+def _verdict_shares(counts: dict[str, dict[str, int]]) -> str:
     share = lambda hits, total: f"{100 * hits / total:.0f}% ({hits}/{total})" if total else "-"
-    accurate, outlier = counts["accurate"], counts["outlier"]
-    lines += ["", f"Accurate results flagged registered: {share(accurate['registered'], sum(accurate.values()))}; "
-              f"outliers flagged uncertain or failed: {share(outlier['uncertain'] + outlier['failed'], sum(outlier.values()))}."]
-    return lines
+    accurate, between, outlier = counts["accurate"], counts["in between"], counts["outlier"]
+    return (f"Accurate results flagged registered: {share(accurate['registered'], sum(accurate.values()))}; "
+            f"outliers flagged uncertain or failed: {share(outlier['uncertain'] + outlier['failed'], sum(outlier.values()))}; "
+            f"inaccurate results flagged registered: {share(between['registered'] + outlier['registered'], sum(between.values()) + sum(outlier.values()))}.")
 
 
 def robustness_curves(records: list[dict], directory: Path) -> list[str]:

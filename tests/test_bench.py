@@ -140,6 +140,7 @@ def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path
     assert len(anchored) == 3 and all(r["anchored_photos"] <= 1 for r in anchored)
     markers = sorted((one / "references").glob("*/reference.json"))
     assert markers and all(m.read_text() == (output / "references" / m.parent.name / "reference.json").read_text() for m in markers)  # reused
+    assert all(not Path(json.loads(m.read_text())["config"]).is_absolute() for m in markers)  # the copy holds its own references
 
     # --twin-anchors builds the twin copies (the tiny photos give no SIFT anchors: the photo to copy comes from a stub)
     # and registers those; what a twin copy holds is test_a_twin_copy_has_its_photos_pose_zoomed_camera_and_observations.

@@ -230,6 +230,25 @@ def test_a_trained_reference_is_reused_while_its_config_exists(tmp_path):
     assert train_reference(scene, tmp_path, 10, lambda step: pytest.fail("trained again")) == (config, 12.5)
 
 
+def test_a_trained_reference_is_found_from_another_directory_and_in_a_moved_output(tmp_path, monkeypatch):
+    """The marker names the config relative to its own folder (what train_reference writes); a marker of an earlier
+    version, relative to the directory sg-bench ran in, is still read there."""
+    output = tmp_path / "results"
+    config = output / "references" / "tiny" / "runs" / "tiny" / "sg-feature-splat" / "t" / "config.yml"
+    config.parent.mkdir(parents=True)
+    config.write_text("")
+    marker = output / "references" / "tiny" / "reference.json"
+    write_json_atomically(marker, {"config": "runs/tiny/sg-feature-splat/t/config.yml", "train_s": 3.0})
+    monkeypatch.chdir(config.parent)
+    assert trained_reference(output, "tiny") == (marker.parent / "runs/tiny/sg-feature-splat/t/config.yml", 3.0)
+    moved = tmp_path / "moved"
+    output.rename(moved)
+    assert trained_reference(moved, "tiny")[0].resolve() == (moved / "references" / "tiny" / "runs" / "tiny" / "sg-feature-splat" / "t" / "config.yml").resolve()
+    monkeypatch.chdir(tmp_path)
+    write_json_atomically(moved / "references" / "tiny" / "reference.json", {"config": "moved/references/tiny/runs/tiny/sg-feature-splat/t/config.yml", "train_s": 3.0})
+    assert trained_reference(Path("moved"), "tiny") == (Path("moved/references/tiny/runs/tiny/sg-feature-splat/t/config.yml"), 3.0)
+
+
 def test_a_scene_runner_registers_a_perturbed_start_and_records_why_the_initialisers_cannot(quick_trained, bench_dir, short_preset, tmp_path):
     """A perturbed run and a 3-photo subset run register and write their records; the tiny reference gives no SIFT
     cloud, so the keypoints are none (and the dense start runs beside the perturbed one, as fast-cpu asks) and the

@@ -129,7 +129,10 @@ def trained_reference(output: Path, scene: str) -> Optional[tuple[Path, float]]:
     if not marker.is_file():
         return None
     record = json.loads(marker.read_text())
-    return (Path(record["config"]), float(record["train_s"])) if Path(record["config"]).is_file() else None
+    # The config is named relative to the marker's folder, so that an output folder run again from another directory,
+    # or moved, keeps its references; markers of earlier versions named it relative to the working directory.
+    config = next((path for path in (marker.parent / record["config"], Path(record["config"])) if path.is_file()), None)
+    return (config, float(record["train_s"])) if config is not None else None
 
 
 def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Callable[[int], None]) -> tuple[Path, float]:
@@ -149,7 +152,7 @@ def train_reference(scene: BenchmarkScene, output: Path, steps: int, on_step: Ca
     path = save(trainer, config)
     elapsed = time.perf_counter() - started
     model = trainer.pipeline.model
-    write_json_atomically(marker, {"config": str(path), "train_s": elapsed, "steps": steps, "gaussians": model.num_points, "densified": model.densifies})
+    write_json_atomically(marker, {"config": os.path.relpath(path, directory), "train_s": elapsed, "steps": steps, "gaussians": model.num_points, "densified": model.densifies})
     return path, elapsed
 
 

@@ -90,6 +90,8 @@ def test_several_benchmarks_are_read_as_one_suite_and_a_shared_scene_name_is_ref
     assert "share the name 'tiny-b'" in err and len(err.splitlines()) == 1 and not (tmp_path / "out").exists()
     assert bench_main([str(suite), str(other), "--output", str(tmp_path / "out"), "--twin-anchors", str(tmp_path / "twins")]) == 1
     assert "expected one" in capsys.readouterr().err and not (tmp_path / "out").exists() and not (tmp_path / "twins").exists()
+    assert bench_main(["--output", str(tmp_path / "out")]) == 1
+    assert "No benchmark directory was given" in capsys.readouterr().err and not (tmp_path / "out").exists()
 
 
 def test_sg_bench_writes_tables_and_resumes(suite, preset, wide_preset, tmp_path, capsys, monkeypatch):

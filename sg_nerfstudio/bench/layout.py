@@ -79,6 +79,8 @@ def read_benchmarks(directories: Sequence[Path]) -> list[BenchmarkScene]:
     """The scenes of several benchmark directories as one suite (e.g. synthetic and real-photo gap scenes side by
     side), in the order given; BenchmarkLayoutError when two scenes share a name (their runs and references would
     share one folder of the output)."""
+    if not directories:
+        raise BenchmarkLayoutError("No benchmark directory was given; expected one or more (e.g. from sg-make-scene --preset benchmark).")
     scenes: list[BenchmarkScene] = []
     for directory in directories:
         for scene in read_benchmark(directory):

@@ -54,7 +54,7 @@ BenchTeacher = Literal[BASELINE, "offline", "dense-sift", "hog-layout", "dinov2"
 
 @dataclass
 class BenchArgs:
-    """Run the benchmark on every scene of a benchmark directory and write results.md / results.csv. (The teacher
+    """Run the benchmark on every scene of one or more benchmark directories and write results.md / results.csv. (The teacher
     benchmark on photo/render pairs: `sg-bench teacher --help`.)"""
 
     benchmarks: Annotated[tuple[Path, ...], tyro.conf.Positional]

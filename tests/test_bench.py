@@ -223,6 +223,7 @@ def test_verdict_table_has_one_block_per_preset_and_counts_inaccurate_results_ca
     assert both[-1] == ("wide-cpu: Accurate results flagged registered: -; outliers flagged uncertain or failed: -; "
                         "inaccurate results flagged registered: 0% (0/1).")
     assert verdict_table([record("fast-cpu", 1.0, None)]) == []
+    assert verdict_table([record(None, 1.0, "registered"), record("fast-cpu", 1.0, "registered")], "fast-cpu")[2] == "| accurate | 2 | 0 | 0 |"  # older records
 
 
 def test_start_precision_table_counts_refinements_further_than_their_start_beyond_the_truths_residual(tmp_path):

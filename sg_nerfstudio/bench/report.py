@@ -228,21 +228,23 @@ def noise_table(records: list[dict], preset: str) -> list[str]:
 VERDICTS = ("registered", "uncertain", "failed")
 
 
-def verdict_table(records: list[dict]) -> list[str]:
+def verdict_table(records: list[dict], preset: str = "fast-cpu") -> list[str]:
     """Confusion of the verdict (no ground truth) with the outcome by the paper's thresholds, over every run with a
-    verdict (one block per preset where several were run); and the shares the verdict is judged by."""
-    presets = sorted({r.get("preset", "") for r in records if r.get("verdict") and r["after"] is not None})
+    verdict (one block per preset where several were run; records written before presets were recorded count as
+    `preset`, this invocation's, as in `noise_table`); and the shares the verdict is judged by."""
+    preset_of = lambda r: r.get("mode") or r.get("preset") or preset
+    presets = sorted({preset_of(r) for r in records if r.get("verdict") and r["after"] is not None})
     if not presets:
         return []
     several = len(presets) > 1
     lines = [("| preset " if several else "") + "| outcome (ground truth) | registered | uncertain | failed |",
              "|---|---|---|---|" + ("---|" if several else "")]
     summaries = []
-    for preset in presets:
-        counts = _verdict_counts([r for r in records if r.get("preset", "") == preset])
-        lines += [(f"| {preset} " if several else "") + f"| {outcome} | " + " | ".join(str(row[v]) for v in VERDICTS) + " |"
+    for name in presets:
+        counts = _verdict_counts([r for r in records if preset_of(r) == name])
+        lines += [(f"| {name} " if several else "") + f"| {outcome} | " + " | ".join(str(row[v]) for v in VERDICTS) + " |"
                   for outcome, row in counts.items()]
-        summaries.append((f"{preset}: " if several else "") + _verdict_shares(counts))
+        summaries.append((f"{name}: " if several else "") + _verdict_shares(counts))
     return lines + [""] + summaries
 
 
@@ -323,7 +325,7 @@ def write_results(output: Path, records: list[dict], initialisers: tuple[str, ..
     noise = noise_table(records, preset)
     if noise:
         sections += ["## From noisy starts (ground truth moved by the start's rotation, translation and scale)", "", *noise, ""]
-    verdicts = verdict_table(records)
+    verdicts = verdict_table(records, preset)
     if verdicts:
         sections += ["## Verdict against the ground truth (accurate: ΔR < 5° and ΔT < 0.2; outlier: ΔR > 10° or ΔT > 0.5)", "", *verdicts, ""]
     if curves:

@@ -671,6 +671,40 @@ def test_verdict_rule_follows_its_evidence():
     assert twin.label == "uncertain" and twin.reasons[0].startswith("another minimum 8 cells away is only 2.5% higher")
     deeper = decide(Evidence(**sound | {"other_minimum_rise": -0.1, "other_minimum_cells": 8.0}))
     assert deeper.label == "uncertain" and "10.0% lower" in deeper.reasons[0]
+    # an orbit about where the photos look that lowers the objective: not at the minimum along the weakest direction
+    assert decide(Evidence(**sound | {"orbit_rise": 0.5 * verdict.DESCENT_TOLERANCE})).label == "registered"
+    orbiting = decide(Evidence(**sound | {"orbit_rise": 2 * verdict.DESCENT_TOLERANCE}))
+    assert orbiting.label == "uncertain" and orbiting.reasons[0] == (
+        "not converged about the photographed scene: turning the result 2.5° about where the photos look lowers the objective 1.0%"
+    )
+
+
+def test_orbit_probes_turn_about_where_the_photos_look(meta):
+    """The six orbit probes turn the result by ORBIT_DEG and leave the point the photos look at where it is;
+    `orbit_rise` is the lowest of their robust objectives relative to the result's."""
+    from sg_nerfstudio.geometry.sim3 import rotation_angle_deg
+
+    transform = Sim3.from_matrix(np.diag([2.0, 2.0, 2.0, 1.0]))
+    centre = torch.from_numpy(meta.look_at_under(transform))
+    looked_at = meta.look_at_under(Sim3.from_matrix(np.eye(4)))  # meta coordinates
+    deltas = verdict.orbit_probes(np.radians(verdict.ORBIT_DEG))
+    assert len(deltas) == 6
+    for delta in deltas:
+        moved = (Sim3.update(delta, centre) @ transform.to_torch()).numpy()
+        assert rotation_angle_deg(np.asarray(moved.rotation) @ np.asarray(transform.rotation).T) == pytest.approx(verdict.ORBIT_DEG)
+        np.testing.assert_allclose(moved.apply(looked_at), centre.numpy(), atol=1e-9)
+
+    lowest = np.asarray((Sim3.update(deltas[1], centre) @ transform.to_torch()).numpy().rotation)
+
+    class TurnLosses:  # every photo's loss grows with the turn away from the second probe's rotation
+        photos = [None, None]
+
+        def __call__(self, sim3, indices):
+            value = 1.0 + 0.01 * rotation_angle_deg(np.asarray(sim3.numpy().rotation) @ lowest.T)
+            return [torch.tensor(value, dtype=torch.float64)] * len(indices), torch.ones(len(indices))
+
+    rule = TrimmingRule.of(RegistrationSettings())
+    assert verdict.orbit_rise(TurnLosses(), meta, transform, np.array([1.05, 1.05]), rule) == pytest.approx(1.0 / 1.05 - 1.0, abs=1e-9)
 
 
 def test_the_look_for_another_minimum_finds_a_repetition_and_nothing_where_there_is_none(meta):
@@ -754,8 +788,9 @@ def facing_the_other_side(ground_truth: Sim3) -> Sim3:
 
 
 def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(reference, meta, ground_truth, monkeypatch):
-    """Also: without anchors the verdict looks for another minimum (registration/other_minimum.py), and the truth of
-    the tiny scene (windows with unique detail) has none as deep."""
+    """Also: without anchors the verdict looks for another minimum (registration/other_minimum.py) and probes orbits
+    about where the photos look, and the truth of the tiny scene (windows with unique detail) has no other minimum as
+    deep and no orbit that descends."""
     from sg_nerfstudio.registration import other_minimum
 
     looks, look = [], other_minimum.look_for_other_minimum
@@ -769,6 +804,7 @@ def test_a_start_facing_the_wrong_side_is_flagged_and_one_at_the_truth_is_not(re
     assert wrong.verdict.label != "registered", wrong.verdict
     assert right.verdict.label == "registered", right.verdict
     assert right.verdict.evidence.depth_points > 0 and np.isfinite(right.verdict.evidence.depth_log_ratio)
+    assert right.verdict.evidence.orbit_rise >= verdict.DESCENT_TOLERANCE  # probed without anchors, at its minimum
 
 
 def test_coarse_stages_and_hypotheses_reach_the_known_optimum(reference, meta, ground_truth, monkeypatch):

@@ -39,7 +39,7 @@ from sg_nerfstudio.registration.settings import RegistrationSettings, as_record,
 from sg_nerfstudio.registration.stages import (
     Stage, coarse_stages, objective_with_anchors, optimise_stage, refine_stages, refines, uses_anchors,
 )
-from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence, probe_sizes
+from sg_nerfstudio.registration.verdict import Evidence, Verdict, decide, failure, gather_evidence, orbit_rise, probe_sizes
 from sg_nerfstudio.registration.visibility import MAX_ROTATION_DEG
 
 Array = np.ndarray
@@ -202,8 +202,8 @@ def assess(
     scale_search: Optional[dict],
 ) -> tuple[Array, float, Evidence, float]:
     """Phase 3 of `register`: the main stage's [P] losses at `result` (meta -> dataparser), their trimmed mean, the
-    verdict's evidence (`verdict.gather_evidence`; the anchors' errors where there are anchors, the look for another
-    minimum where there are none) and the seconds its probes took."""
+    verdict's evidence (`verdict.gather_evidence`; the anchors' errors where there are anchors, the orbit probes and the
+    look for another minimum where there are none) and the seconds its probes took."""
     with held_for_probes(main.losses, meta, result):
         final_losses, final_coverage, trimmed, depth = final_evaluation(main.losses, result, settings)
         probing = time.perf_counter()
@@ -217,6 +217,7 @@ def assess(
         evidence.keypoint_error_cells, evidence.keypoint_photos = final_anchors.median_error_cells(result), final_anchors.photos
         evidence.keypoint_scale_motion_px, evidence.keypoint_error_px = final_anchors.scale_motion_px(result)
     if not uses_anchors(settings, bool(start.anchor)) and failure(evidence) is None:  # a failed result needs no second look
+        evidence.orbit_rise = orbit_rise(main.losses, meta, result, final_losses, TrimmingRule.of(settings))  # culled per pose
         record_other_minimum(evidence, main, meta, result, final_losses, settings)
     return final_losses, trimmed, evidence, time.perf_counter() - probing
 

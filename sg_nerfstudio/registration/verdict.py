@@ -6,9 +6,12 @@ ways. A result that found the model sits in a minimum the descriptor resolves an
 the wrong thing sits on a plateau that few photos agree with. `Evidence` lists what is measured; docs/verdict.md says
 what each piece of evidence means and how the thresholds were chosen.
 
+Without keypoint anchors six *orbit probes* follow: the result turned by ORBIT_DEG about each axis through where the
+photos look, the direction the dense objective resolves worst.
+
 Rule: `failed` when too few photos agree or the objective is flat. `registered` when enough photos agree, the minimum
-is sharp (or shallow but held by keypoint anchors or by the meta-image's own depths), no probe descends, no photo
-contradicts the result, the anchors (if any) reproject close, no camera fit was refused, no other minimum lies close
+is sharp (or shallow but held by keypoint anchors or by the meta-image's own depths), no probe (orbit probes included)
+descends, no photo contradicts the result, the anchors (if any) reproject close, no camera fit was refused, no other minimum lies close
 and the scale (where the anchors left it free) is seen. `uncertain` otherwise, with the reasons.
 
 | threshold | value | meaning |
@@ -17,7 +20,8 @@ and the scale (where the anchors left it free) is seen. `uncertain` otherwise, w
 | `FAILED_SHARPNESS` | 1.5% | the objective rises less one cell away: flat, failed (and a free scale not seen: uncertain) |
 | `REGISTERED_AGREEING` | 1/2 | at least this share of photos agree to register |
 | `REGISTERED_SHARPNESS` | 5% | the rise one cell away a registered minimum needs (unless anchors or depths hold it) |
-| `DESCENT_TOLERANCE` | -0.5% | a probe lower than the result by more: not converged |
+| `DESCENT_TOLERANCE` | -0.5% | a probe (or an orbit probe) lower than the result by more: not converged |
+| `ORBIT_DEG` | 2.5° | the orbit probes' turn about where the photos look (half the benchmark's 5° accuracy angle) |
 | `PHOTO_RISE` | 2% | a photo agrees when its own loss rises this much at the median probe; contradicts when it falls this much |
 | `PHOTO_COVERAGE` | 25% | ... and the model covers at least this share of its render |
 | `ANCHORS_HOLD_CELLS` | 0.25 | anchors hold when their median reprojection error is within this many teacher cells |
@@ -65,6 +69,9 @@ REGISTERED_AGREEING = 0.5
 REGISTERED_SHARPNESS = 0.05
 """A registered minimum rises at least this much one cell away, unless anchors or depths hold it. Calibrated on generated
 scenes (docs/verdict.md)."""
+ORBIT_DEG = 2.5
+"""The orbit probes turn the result this far about where the photos look (`MetaImage.look_at_under`): half the
+benchmark's accuracy angle (`metrics.ACCURATE`), so a result that far off along the weakest direction sees it descend."""
 ANCHORS_HOLD_CELLS = 0.25
 """Chosen, not calibrated: anchored results sit at 0.02-0.17 cells, a pose 3° off at several."""
 DEPTH_HOLDS_SHARE = 0.6
@@ -100,6 +107,7 @@ class Evidence:
     camera_fit_refused: Optional[str] = None
     other_minimum_rise: Optional[float] = None
     other_minimum_cells: Optional[float] = None
+    orbit_rise: Optional[float] = None
 
     @property
     def agreeing_fraction(self) -> float:
@@ -218,6 +226,28 @@ def scale_probes(
     return float(min(rises)), float(step)
 
 
+def orbit_probes(angle: float) -> list[Tensor]:
+    """6 deltas (omega, nu, log s) [7]: ±`angle` radians about each axis (applied about where the photos look)."""
+    return probes(angle, 0.0)[:6]  # the rotation half
+
+
+def orbit_rise(losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, rule: TrimmingRule) -> float:
+    """The smallest relative rise of the robust objective when `final_ns` (meta -> dataparser) turns by ±ORBIT_DEG
+    about each axis through where the photos look. Such an orbit keeps the photographed scene near the same pixels and
+    changes only its parallax, the motion the dense objective resolves worst on few photos or a coarse reference; a
+    negative value means the result is not at its minimum along it. `final_losses` [P]: the per-photo losses there."""
+    centre = torch.from_numpy(meta.look_at_under(final_ns))
+    start = final_ns.to_torch()
+    indices = list(range(len(losses.photos)))
+    base = max(rule.trimmed_mean(final_losses), 1e-12)
+    with torch.no_grad():
+        values = [
+            rule.trimmed_mean(torch.stack(losses(Sim3.update(delta, centre) @ start, indices)[0]).double().numpy())
+            for delta in orbit_probes(math.radians(ORBIT_DEG))
+        ]
+    return float(min(values) / base - 1.0)
+
+
 def agreement_and_sharpness(evidence: Evidence) -> tuple[str, str]:
     """The two phrases every verdict's reasons are made of: how many photos agree, how far the objective rises."""
     return f"{evidence.agreeing_photos} of {evidence.photos} photos agree", f"objective rises {100 * evidence.sharpness:.1f}% one cell away"
@@ -255,6 +285,11 @@ def decide(evidence: Evidence) -> Verdict:
         reasons.append(shallow)
     if evidence.flattest_rise < DESCENT_TOLERANCE:
         reasons.append(f"not converged: a probe is {100 * -evidence.flattest_rise:.1f}% lower")
+    if evidence.orbit_rise is not None and evidence.orbit_rise < DESCENT_TOLERANCE:
+        reasons.append(
+            f"not converged about the photographed scene: turning the result {ORBIT_DEG:g}° about where the photos look "
+            f"lowers the objective {100 * -evidence.orbit_rise:.1f}%"
+        )
     contradicting = [
         rise for rise, cover in zip(evidence.per_photo_rise, evidence.per_photo_coverage) if rise < -PHOTO_RISE and cover >= PHOTO_COVERAGE
     ]

@@ -182,10 +182,7 @@ def gather_evidence(
     rotation, translation = probe_sizes(meta, losses.photos, losses.objective.teacher.grid_size, final_ns)
     start = final_ns.to_torch()
     centre = torch.from_numpy(meta.centroid_under(final_ns))
-    with torch.no_grad():
-        probe_losses = np.stack([
-            torch.stack(losses(Sim3.update(delta, centre) @ start, indices)[0]).double().numpy() for delta in probes(rotation, translation)
-        ])  # [12, P]
+    probe_losses = np.stack([losses_at(losses, Sim3.update(delta, centre) @ start, indices) for delta in probes(rotation, translation)])  # [12, P]
     final = rule.trimmed_mean(final_losses)
     rises = np.array([rule.trimmed_mean(row) for row in probe_losses]) / max(final, 1e-12) - 1.0
     photo_rise = np.median(probe_losses / np.maximum(final_losses, 1e-12)[None] - 1.0, axis=0)
@@ -220,9 +217,7 @@ def scale_probes(
     rises = []
     for factor in (1.0 + step, 1.0 / (1.0 + step)):
         probe = Sim3.scaling_about(factor, centre) @ final_ns
-        with torch.no_grad():
-            values = torch.stack(losses(probe.to_torch(), others)[0]).double().numpy()
-        rises.append(rule.trimmed_mean(values) / base - 1.0)
+        rises.append(rule.trimmed_mean(losses_at(losses, probe.to_torch(), others)) / base - 1.0)
     return float(min(rises)), float(step)
 
 
@@ -240,12 +235,14 @@ def orbit_rise(losses, meta: MetaImage, final_ns: Sim3, final_losses: Array, rul
     start = final_ns.to_torch()
     indices = list(range(len(losses.photos)))
     base = max(rule.trimmed_mean(final_losses), 1e-12)
-    with torch.no_grad():
-        values = [
-            rule.trimmed_mean(torch.stack(losses(Sim3.update(delta, centre) @ start, indices)[0]).double().numpy())
-            for delta in orbit_probes(math.radians(ORBIT_DEG))
-        ]
+    values = [rule.trimmed_mean(losses_at(losses, Sim3.update(delta, centre) @ start, indices)) for delta in orbit_probes(math.radians(ORBIT_DEG))]
     return float(min(values) / base - 1.0)
+
+
+def losses_at(losses, meta_to_dataparser: Tensor, indices: list[int]) -> Array:
+    """[B] per-photo losses of the photos `indices` under a torch Sim3 (meta -> dataparser), without gradients."""
+    with torch.no_grad():
+        return torch.stack(losses(meta_to_dataparser, indices)[0]).double().numpy()
 
 
 def agreement_and_sharpness(evidence: Evidence) -> tuple[str, str]:

@@ -202,6 +202,9 @@ def test_noise_table_names_the_preset_each_run_was_made_with():
     ]
     rows = noise_table([beside("dense"), beside("dense"), beside("given")], "fast-cpu")
     assert rows[2:] == ["| 30, 0.50, 30% | fast-cpu | 3 | 67 | 33 | 7.33 / 1.00 | 0.010 / 0.010 | 1.00 / 0.010 | 2 of 3 | 10 |"]
+    at_truth = {**record("fast-cpu", 0.5), "label": "0"}  # the start at the ground truth itself comes first, named so
+    rows = noise_table([record("fast-cpu", 1.0), at_truth], "fast-cpu")
+    assert [row.split(" | ")[0] for row in rows[2:]] == ["| 0 (the ground truth itself)", "| 30, 0.50, 30%"]
 
 
 def test_verdict_table_has_one_block_per_preset_and_counts_inaccurate_results_called_registered():

@@ -194,6 +194,8 @@ def ablation_table(records: list[dict]) -> list[str]:
 def noise_table(records: list[dict], preset: str) -> list[str]:
     """Per noise level and preset: MTA, O%, mean and median ΔR / ΔT after, the accurate runs' mean ΔR / ΔT, how often
     the dense start beside the given one won (`hypotheses.dense_start`), mean wall time (the noise runs' starts).
+    Level 0 starts at the ground truth itself: where the reference's own objective puts the truth, which bounds what
+    any other start can reach (docs/measurements.md "Where the gap references put the truth").
 
     A run's preset is the one its record names (runs an earlier invocation made with another `--config` keep
     their name); records written before presets were recorded count as `preset`, this invocation's."""
@@ -218,8 +220,9 @@ def noise_table(records: list[dict], preset: str) -> list[str]:
         beside = [r for r in runs if r.get("other_starts") and r["after"] is not None]
         won = f"{sum(r.get('start_won') == 'dense' for r in beside)} of {len(beside)}" if beside else "-"
         seconds = statistics.mean(r["refine_time_s"] for r in runs)
+        start = f"{level:g}, {level / 60:.2f}, {level:g}%" if level else "0 (the ground truth itself)"
         lines.append(
-            f"| {level:g}, {level / 60:.2f}, {level:g}% | {mode} | {len(runs)} | {percent('MTA')} | {percent('O')} | {both('dR')} | {both('dT')} | "
+            f"| {start} | {mode} | {len(runs)} | {percent('MTA')} | {percent('O')} | {both('dR')} | {both('dT')} | "
             f"{mean(accurate, 'dR') + ' / ' + mean(accurate, 'dT') if accurate else '-'} | {won} | {seconds:.0f} |"
         )
     return lines

@@ -75,7 +75,8 @@ class BenchArgs:
     """Ablation rows to run from the perturbed start (e.g. full photometric l2 none outlier-lts fixed-lts irls)."""
     noise_levels: tuple[float, ...] = ()
     """Rotation noise (degrees) of extra starts from the ground truth, with translation and scale noise in
-    proportion (30°: 0.5 scene units and 30%): the noise table and the curve of final error vs initial noise."""
+    proportion (30°: 0.5 scene units and 30%): the noise table and the curve of final error vs initial noise. 0 starts
+    at the ground truth itself: where the reference's own objective puts the truth, the bound of every other start."""
     noise_samples: int = 1
     """Random start directions per noise level and meta-image."""
     compare_config: tuple[str, ...] = ()

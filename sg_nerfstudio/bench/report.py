@@ -194,8 +194,8 @@ def ablation_table(records: list[dict]) -> list[str]:
 def noise_table(records: list[dict], preset: str) -> list[str]:
     """Per noise level and preset: MTA, O%, mean and median ΔR / ΔT after, the accurate runs' mean ΔR / ΔT, how often
     the dense start beside the given one won (`hypotheses.dense_start`), mean wall time (the noise runs' starts).
-    Level 0 starts at the ground truth itself: where the reference's own objective puts the truth, which bounds what
-    any other start can reach (docs/measurements.md "Where the gap references put the truth").
+    Level 0 starts at the ground truth itself: where registration ends from a perfect start, the level against which
+    the other starts' errors read (docs/measurements.md "Where the gap references put the truth").
 
     A run's preset is the one its record names (runs an earlier invocation made with another `--config` keep
     their name); records written before presets were recorded count as `preset`, this invocation's."""

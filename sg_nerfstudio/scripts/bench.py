@@ -76,7 +76,7 @@ class BenchArgs:
     noise_levels: tuple[float, ...] = ()
     """Rotation noise (degrees) of extra starts from the ground truth, with translation and scale noise in
     proportion (30°: 0.5 scene units and 30%): the noise table and the curve of final error vs initial noise. 0 starts
-    at the ground truth itself: where the reference's own objective puts the truth, the bound of every other start."""
+    at the ground truth itself: where registration ends from a perfect start, on the reference's own objective."""
     noise_samples: int = 1
     """Random start directions per noise level and meta-image."""
     compare_config: tuple[str, ...] = ()

@@ -265,6 +265,7 @@ def test_a_scene_runner_registers_a_perturbed_start_and_records_why_the_initiali
     assert record["before"]["dR"] == pytest.approx(5.0, abs=1e-6) and record["after"] is not None and record["anchored_photos"] == 0
     assert record["preset"] == "short" and record["photos"] == len(loaded.photos) and record["verdict"] in {"registered", "uncertain", "failed"}
     assert record["other_starts"] == ["dense"] and record["start_won"] in {"given", "dense"}  # no anchors: the dense start runs beside
+    assert [h["start"] for h in record["hypotheses"]] == ["given", "dense"] and min(h["rotation_from_winner_deg"] for h in record["hypotheses"]) < 1e-5
     assert len(steps) == 2 * 3 and {total for _, total in steps} == {6}
     subset = runner.run(meta, loaded, RunSpec("size-3-0", "size", "perturbed", "3", subset_size=3), lambda *_: None)
     assert subset["photos"] == 3 and subset["truth_residual"] is None and subset["after"] is not None

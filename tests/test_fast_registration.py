@@ -22,6 +22,7 @@ from sg_nerfstudio.registration.anchored_start import bundle_adjustment, prealig
 from sg_nerfstudio.registration.anchored_start.anchors import FIT_KERNEL_FRACTION, Anchoring
 from sg_nerfstudio.registration.anchored_start.scale_search import scale_the_anchors_leave_free
 from sg_nerfstudio.registration.metrics import pose_errors
+from sg_nerfstudio.registration.optimize import hypothesis_margin
 from sg_nerfstudio.registration.schedules import History
 from sg_nerfstudio.registration.settings import RegistrationSettings
 from sg_nerfstudio.registration.stages import Stage
@@ -154,6 +155,10 @@ def test_other_starts_are_always_optimised_and_the_judge_picks_among_every_end(f
     winner, records, _ = hypotheses.best_hypothesis(stage, losses, meta, far, UNTRIMMED, history, 0, None, other_starts=[("dense", near)])
     assert np.allclose(winner.matrix, near.matrix) and [(r["start"], r["won"]) for r in records] == [("given", False), ("dense", True)]
     assert not records[0]["agrees_with_winner"] and records[1]["final_objective"] < records[0]["final_objective"]
+    assert records[0]["rotation_from_winner_deg"] == pytest.approx(hypotheses.rotation_between_deg(far, near)) and records[1]["rotation_from_winner_deg"] < 1e-5
+    margin, elsewhere = hypothesis_margin(records)
+    assert margin == pytest.approx(records[0]["final_objective"] / records[1]["final_objective"] - 1.0) and elsewhere == records[0]["rotation_from_winner_deg"]
+    assert hypothesis_margin(records[1:]) == (None, None)  # every end agrees with the winner
     winner, records, _ = hypotheses.best_hypothesis(stage, losses, meta, near, UNTRIMMED, history, 0, None, other_starts=[("dense", far)])
     assert np.allclose(winner.matrix, near.matrix) and [(r["start"], r["won"]) for r in records] == [("given", True), ("dense", False)]
     one_kept = UNTRIMMED.changed(hypotheses={"count": 4, "rotation_deg": 10.0, "kept": 1})

@@ -219,6 +219,7 @@ class SceneRunner:
                 record["verdict"], record["verdict_reasons"] = result.verdict.label, result.verdict.reasons
                 record["verdict_evidence"] = result.verdict.as_record()["evidence"]
                 record["start_won"] = result.start_won
+                record["hypotheses"] = result.hypotheses
         write_json_atomically(record_path(self.output, self.scene.name, meta.name, spec.name), record)
         return record
 

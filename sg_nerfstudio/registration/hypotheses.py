@@ -55,7 +55,8 @@ def best_hypothesis(
     history.extend(winner_history)
     records = [
         {"start": label, "axis": axis, "scale": factor, "start_objective_coarse": start_score, "final_objective": final_score,
-         "won": final is winner, "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
+         "won": final is winner, "rotation_from_winner_deg": rotation_between_deg(final, winner),
+         "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
         for final, final_score, _, label, (axis, factor), start_score in runs
     ]
     return winner, records, first_step + stage.steps

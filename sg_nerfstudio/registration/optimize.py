@@ -149,7 +149,7 @@ def register(
     current, hypotheses, step = run_stages(stages, main, meta, current, initial_ns, initial_losses, settings, history, report, start.anchor, others)
 
     final_losses, trimmed, evidence, verdict_s = assess(main, meta, current, initial_losses, settings, start, scale_search)
-    evidence.hypothesis_margin = hypothesis_margin(hypotheses)
+    evidence.hypothesis_margin, evidence.hypothesis_elsewhere_deg = hypothesis_margin(hypotheses)
     distinct = {id(stage.losses): stage.losses for stage in stages}.values()  # a refine stage may share the main stage's
     timings = {key: sum(losses.timings[key] for losses in distinct) for key in main.losses.timings}
     timings["verdict"] = verdict_s  # the probes' renders (also counted in "render" and "loss")
@@ -222,13 +222,15 @@ def assess(
     return final_losses, trimmed, evidence, time.perf_counter() - probing
 
 
-def hypothesis_margin(hypotheses: list[dict]) -> Optional[float]:
-    """How much higher, relative to the winner, the best optimised hypothesis that ended elsewhere scored; None when
-    every one agrees with the winner (or there were none)."""
-    elsewhere = [h["final_objective"] for h in hypotheses if not h["agrees_with_winner"]]
+def hypothesis_margin(hypotheses: list[dict]) -> tuple[Optional[float], Optional[float]]:
+    """(how much higher, relative to the winner, the best optimised hypothesis that ended elsewhere scored, how far
+    from the winner it ended in degrees); (None, None) when every one agrees with the winner (or there were none)."""
+    elsewhere = [h for h in hypotheses if not h["agrees_with_winner"]]
     if not elsewhere:
-        return None
-    return min(elsewhere) / max(min(h["final_objective"] for h in hypotheses), 1e-12) - 1.0
+        return None, None
+    best = min(elsewhere, key=lambda h: h["final_objective"])
+    winner = min(h["final_objective"] for h in hypotheses)
+    return best["final_objective"] / max(winner, 1e-12) - 1.0, best["rotation_from_winner_deg"]
 
 
 def effective_near_plane(meta: MetaImage, initial_ns: Sim3, requested: float) -> float:

@@ -95,6 +95,7 @@ class Evidence:
     per_photo_rise: list[float] = field(default_factory=list)
     per_photo_coverage: list[float] = field(default_factory=list)
     hypothesis_margin: Optional[float] = None
+    hypothesis_elsewhere_deg: Optional[float] = None
     keypoint_error_cells: Optional[float] = None
     keypoint_photos: Optional[int] = None
     keypoint_scale_motion_px: Optional[float] = None

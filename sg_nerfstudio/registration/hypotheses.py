@@ -55,11 +55,16 @@ def best_hypothesis(
     history.extend(winner_history)
     records = [
         {"start": label, "axis": axis, "scale": factor, "start_objective_coarse": start_score, "final_objective": final_score,
-         "won": final is winner, "rotation_from_winner_deg": rotation_between_deg(final, winner),
-         "agrees_with_winner": bool(rotation_between_deg(final, winner) < HYPOTHESIS_AGREEMENT_DEG)}
+         "won": final is winner, **end_against_winner(final, winner)}
         for final, final_score, _, label, (axis, factor), start_score in runs
     ]
     return winner, records, first_step + stage.steps
+
+
+def end_against_winner(end: Sim3, winner: Sim3) -> dict:
+    """{rotation_from_winner_deg, agrees_with_winner} of one optimised start's end (numpy Sim3s, meta -> dataparser)."""
+    angle = rotation_between_deg(end, winner)
+    return {"rotation_from_winner_deg": angle, "agrees_with_winner": bool(angle < HYPOTHESIS_AGREEMENT_DEG)}
 
 
 def runs_dense_start(settings: RegistrationSettings, anchored: bool) -> bool:
